@@ -1,0 +1,21 @@
+"""logsph_trace: exact, fast ray traversal of bounded log-spherical grids.
+
+Which voxels of a bounded log-spherical grid does a ray cross, in what order,
+and for how long? See ``Grid``, ``trace`` and ``trace_many``.
+"""
+
+from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
+from .trace import METHODS, Trace, Traces, trace, trace_many
+
+__all__ = [
+    "Grid",
+    "METHODS",
+    "Trace",
+    "Traces",
+    "cartesian_to_spherical",
+    "from_ros",
+    "spherical_to_cartesian",
+    "trace",
+    "trace_many",
+]
+__version__ = "0.1.0"

@@ -1,0 +1,424 @@
+"""The bounded log-spherical partition of the paper's Eq. 1-3 (conventions: GEOMETRY.md)."""
+
+import math
+
+import numpy as np
+
+from .kernels import locate as _locate
+
+SPACINGS = ("log", "paper", "uniform")
+_SPACING_KIND = {"log": _locate.LOG, "paper": _locate.PAPER, "uniform": _locate.UNIFORM}
+_FULL_TURN_TOL = 1e-12
+
+
+def _as_count(name, value):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    if value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def _as_finite(name, value):
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a finite number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    return number
+
+
+def _as_range(name, value):
+    try:
+        low, high = value
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair (low, high), got {value!r}") from None
+    low = _as_finite(f"{name}[0]", low)
+    high = _as_finite(f"{name}[1]", high)
+    if not low < high:
+        raise ValueError(f"{name} must be increasing (low < high), got {value!r}")
+    return low, high
+
+
+def _check_edges(name, edges):
+    try:
+        array = np.array(edges, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a 1-D array of numbers, got {edges!r}") from None
+    if array.ndim != 1 or array.shape[0] < 2:
+        raise ValueError(f"{name} must be 1-D with at least 2 edges, got shape {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} must be finite, got {array!r}")
+    steps = np.diff(array)
+    if not np.all(steps > 0):
+        bad = int(np.argmin(steps))
+        raise ValueError(
+            f"{name} must be strictly increasing; edges[{bad}]={array[bad]!r} "
+            f">= edges[{bad + 1}]={array[bad + 1]!r}"
+        )
+    return array
+
+
+def _check_theta_width(low, high, name):
+    width = high - low
+    if width > 2 * np.pi + _FULL_TURN_TOL:
+        raise ValueError(f"{name} spans {width!r} rad; an azimuth range is at most 2*pi")
+    return abs(width - 2 * np.pi) <= _FULL_TURN_TOL
+
+
+def _check_phi(low, high, name):
+    half = np.pi / 2
+    if low < -half - _FULL_TURN_TOL or high > half + _FULL_TURN_TOL:
+        raise ValueError(f"{name} must lie in [-pi/2, pi/2], got ({low!r}, {high!r})")
+
+
+def rho_edges_for(rho_min, rho_max, n_rho, spacing="log"):
+    """Radial edges for one of the named spacings (GEOMETRY.md, "Radial spacings").
+
+    Parameters
+    ----------
+    rho_min, rho_max : float
+        Radial bounds of the region, in the user's length unit.
+    n_rho : int
+        Number of radial cells.
+    spacing : {"log", "paper", "uniform"}
+        ``log``: ``rho_min * (rho_max / rho_min) ** (i / n_rho)``;
+        ``paper``: ``rho_min + b ** i`` with ``b = (rho_max - rho_min) ** (1 / n_rho)``
+        (Eq. 3; cell 0 also holds ``[rho_min, rho_min + 1)``);
+        ``uniform``: evenly spaced.
+
+    Returns
+    -------
+    numpy.ndarray, shape (n_rho + 1,), float64
+    """
+    rho_min = _as_finite("rho_min", rho_min)
+    rho_max = _as_finite("rho_max", rho_max)
+    n_rho = _as_count("n_rho", n_rho)
+    if spacing not in SPACINGS:
+        raise ValueError(f"spacing must be one of {SPACINGS}, got {spacing!r}")
+    if rho_min < 0:
+        raise ValueError(f"rho_min must be >= 0, got {rho_min!r}")
+    if not rho_min < rho_max:
+        raise ValueError(f"rho_min must be < rho_max, got rho_min={rho_min!r}, rho_max={rho_max!r}")
+    index = np.arange(n_rho + 1, dtype=np.float64)
+    if spacing == "log":
+        if rho_min <= 0:
+            raise ValueError(f"log spacing needs rho_min > 0, got rho_min={rho_min!r}")
+        edges = rho_min * (rho_max / rho_min) ** (index / n_rho)
+    elif spacing == "paper":
+        if rho_max - rho_min <= 1:
+            raise ValueError(
+                "paper spacing needs rho_max - rho_min > 1 (Eq. 3 depends on the length unit), "
+                f"got rho_max - rho_min={rho_max - rho_min!r}"
+            )
+        base = (rho_max - rho_min) ** (1.0 / n_rho)
+        edges = rho_min + base**index
+        edges[0] = rho_min
+    else:
+        edges = np.linspace(rho_min, rho_max, n_rho + 1)
+    edges[0] = rho_min
+    edges[-1] = rho_max
+    if not np.all(np.diff(edges) > 0):
+        raise ValueError(f"n_rho={n_rho} is too fine for rho in ({rho_min!r}, {rho_max!r})")
+    return edges
+
+
+class Grid:
+    """A bounded log-spherical partition: ``rho x theta x phi`` cells (paper Eq. 1-2).
+
+    Parameters
+    ----------
+    rho_min, rho_max : float
+        Radial bounds. ``rho < rho_min`` is the egocentric gap (not part of the region).
+    n_rho, n_theta, n_phi : int
+        Cell counts along rho, theta (azimuth) and phi (elevation).
+    theta_range : (float, float), optional
+        Azimuth range in radians, width in ``(0, 2*pi]``; it may start anywhere.
+        Default ``(-pi, pi)``, the full circle.
+    phi_range : (float, float), optional
+        Elevation range in radians within ``[-pi/2, pi/2]``. Default the full range.
+    spacing : {"log", "paper", "uniform"}, optional
+        Radial spacing, see :func:`rho_edges_for`. Default ``"log"``.
+
+    Attributes
+    ----------
+    rho_edges, theta_edges, phi_edges : numpy.ndarray
+        Strictly increasing cell edges, float64, lengths ``n + 1``.
+    shape : tuple of int
+        ``(n_rho, n_theta, n_phi)``; an occupancy array over the grid has this shape.
+    spacing : str
+        ``"log"``, ``"paper"``, ``"uniform"`` or ``"explicit"``.
+
+    Notes
+    -----
+    The frame (GEOMETRY.md): ``theta = atan2(x, z)`` is the azimuth about the y
+    axis from +z towards +x, ``phi = atan2(y, sqrt(x^2 + z^2))`` the elevation.
+    Cell ``(i, j, k)`` holds ``rho_edges[i] <= rho < rho_edges[i+1]`` and likewise
+    for theta and phi; a value on the last edge of an axis belongs to the last cell.
+    """
+
+    def __init__(self, rho_min, rho_max, n_rho, n_theta, n_phi,
+                 theta_range=(-np.pi, np.pi), phi_range=(-np.pi / 2, np.pi / 2),
+                 spacing="log"):
+        rho_edges = rho_edges_for(rho_min, rho_max, n_rho, spacing)
+        n_theta = _as_count("n_theta", n_theta)
+        n_phi = _as_count("n_phi", n_phi)
+        theta_min, theta_max = _as_range("theta_range", theta_range)
+        phi_min, phi_max = _as_range("phi_range", phi_range)
+        if _check_theta_width(theta_min, theta_max, "theta_range"):
+            theta_max = theta_min + 2 * np.pi
+        _check_phi(phi_min, phi_max, "phi_range")
+        theta_edges = np.linspace(theta_min, theta_max, n_theta + 1)
+        phi_edges = np.linspace(max(phi_min, -np.pi / 2), min(phi_max, np.pi / 2), n_phi + 1)
+        self._setup(rho_edges, theta_edges, phi_edges, spacing,
+                    _SPACING_KIND[spacing], _locate.UNIFORM, _locate.UNIFORM)
+
+    @classmethod
+    def from_edges(cls, rho_edges, theta_edges, phi_edges):
+        """A grid from any strictly increasing edges (radians for the angles).
+
+        The paper's remark that the method generalises "by substituting the
+        conversion function": lookups use binary search on these edges.
+        ``rho_edges[0]`` must be ``>= 0``; ``theta_edges`` may span at most ``2*pi``
+        (exactly ``2*pi`` is the full circle with a seam at ``theta_edges[0]``);
+        ``phi_edges`` must lie in ``[-pi/2, pi/2]``.
+        """
+        rho = _check_edges("rho_edges", rho_edges)
+        theta = _check_edges("theta_edges", theta_edges)
+        phi = _check_edges("phi_edges", phi_edges)
+        if rho[0] < 0:
+            raise ValueError(f"rho_edges[0] must be >= 0, got {rho[0]!r}")
+        if _check_theta_width(theta[0], theta[-1], "theta_edges"):
+            theta[-1] = theta[0] + 2 * np.pi
+        _check_phi(phi[0], phi[-1], "phi_edges")
+        phi = np.clip(phi, -np.pi / 2, np.pi / 2)
+        grid = cls.__new__(cls)
+        grid._setup(rho, theta, phi, "explicit", _locate.EXPLICIT, _locate.EXPLICIT, _locate.EXPLICIT)
+        return grid
+
+    @classmethod
+    def from_increments(cls, rho_min, rho_max, n_rho, d_theta=1.0, d_phi=1.0,
+                        theta_range=(-180.0, 180.0), phi_range=(-90.0, 90.0), spacing="paper"):
+        """A grid in the paper's terms: angular increments and ranges in **degrees**.
+
+        ``d_theta`` and ``d_phi`` must divide their ranges into a whole number of
+        cells (section 2.1: "discretised into cells by defining the increment in
+        the angles"). The default radial spacing is the paper's Eq. 3.
+        """
+        d_theta = _as_finite("d_theta", d_theta)
+        d_phi = _as_finite("d_phi", d_phi)
+        counts = []
+        for name, step, span in (("d_theta", d_theta, theta_range), ("d_phi", d_phi, phi_range)):
+            low, high = _as_range(name.replace("d_", "") + "_range", span)
+            if step <= 0:
+                raise ValueError(f"{name} must be > 0 degrees, got {step!r}")
+            cells = (high - low) / step
+            if abs(cells - round(cells)) > 1e-9 * max(1.0, cells):
+                raise ValueError(
+                    f"{name}={step!r} degrees does not divide the range {span!r} into whole cells"
+                )
+            counts.append(max(int(round(cells)), 1))
+        return cls(rho_min, rho_max, n_rho, counts[0], counts[1],
+                   theta_range=tuple(np.radians(theta_range)),
+                   phi_range=tuple(np.radians(phi_range)), spacing=spacing)
+
+    def _setup(self, rho_edges, theta_edges, phi_edges, spacing, rho_kind, theta_kind, phi_kind):
+        self.rho_edges = rho_edges
+        self.theta_edges = theta_edges
+        self.phi_edges = phi_edges
+        self.spacing = spacing
+        self.rho_kind = int(rho_kind)
+        self.theta_kind = int(theta_kind)
+        self.phi_kind = int(phi_kind)
+        self.theta_full = bool(theta_edges[-1] - theta_edges[0] >= 2 * np.pi)
+        for array in (rho_edges, theta_edges, phi_edges):
+            array.setflags(write=False)
+
+    # ---- shape and bounds -------------------------------------------------
+    @property
+    def shape(self):
+        """``(n_rho, n_theta, n_phi)``."""
+        return (self.rho_edges.size - 1, self.theta_edges.size - 1, self.phi_edges.size - 1)
+
+    @property
+    def n_rho(self):
+        return self.shape[0]
+
+    @property
+    def n_theta(self):
+        return self.shape[1]
+
+    @property
+    def n_phi(self):
+        return self.shape[2]
+
+    @property
+    def rho_min(self):
+        return float(self.rho_edges[0])
+
+    @property
+    def rho_max(self):
+        return float(self.rho_edges[-1])
+
+    @property
+    def theta_range(self):
+        return float(self.theta_edges[0]), float(self.theta_edges[-1])
+
+    @property
+    def phi_range(self):
+        return float(self.phi_edges[0]), float(self.phi_edges[-1])
+
+    def __repr__(self):
+        n_rho, n_theta, n_phi = self.shape
+        return (
+            f"Grid(rho=({self.rho_min:g}, {self.rho_max:g}) x {n_rho} [{self.spacing}], "
+            f"theta=({self.theta_range[0]:.6g}, {self.theta_range[1]:.6g}) x {n_theta}, "
+            f"phi=({self.phi_range[0]:.6g}, {self.phi_range[1]:.6g}) x {n_phi})"
+        )
+
+    def __eq__(self, other):
+        if not isinstance(other, Grid):
+            return NotImplemented
+        return (
+            np.array_equal(self.rho_edges, other.rho_edges)
+            and np.array_equal(self.theta_edges, other.theta_edges)
+            and np.array_equal(self.phi_edges, other.phi_edges)
+        )
+
+    __hash__ = None
+
+    # ---- arrays the kernels take ------------------------------------------
+    def kernel_args(self):
+        """The grid as the flat tuple of arrays and scalars the traversal kernels take."""
+        cached = getattr(self, "_kernel_args", None)
+        if cached is None:
+            theta = self.theta_edges
+            phi = self.phi_edges
+            cached = (
+                self.rho_edges, self.rho_edges**2, self.rho_kind,
+                theta, np.sin(theta), np.cos(theta), self.theta_kind, self.theta_full,
+                phi, np.tan(phi) ** 2, np.sign(phi), self.phi_kind,
+            )
+            self._kernel_args = cached
+        return cached
+
+    # ---- conversions ------------------------------------------------------
+    def cell_of(self, points):
+        """Cell index of each point.
+
+        Parameters
+        ----------
+        points : array_like, shape (M, 3) or (3,)
+            Cartesian points (x, y, z).
+
+        Returns
+        -------
+        numpy.ndarray, int32, shape (M, 3) (or (3,))
+            ``(i, j, k)`` per point; ``-1`` in all three columns outside the region.
+        """
+        array, single = _points("points", points)
+        cells = _locate.cells_of_points(
+            array, self.rho_edges, self.rho_kind, self.theta_edges, self.theta_kind,
+            self.phi_edges, self.phi_kind,
+        )
+        return cells[0] if single else cells
+
+    def contains(self, points):
+        """Boolean mask: which points lie inside the region."""
+        cells = self.cell_of(points)
+        return cells[..., 0] >= 0
+
+    def cell_bounds(self, cells):
+        """Bounds of cells: ``(rho_lo, rho_hi, theta_lo, theta_hi, phi_lo, phi_hi)`` per row.
+
+        Parameters
+        ----------
+        cells : array_like of int, shape (M, 3) or (3,)
+
+        Returns
+        -------
+        numpy.ndarray, float64, shape (M, 6) (or (6,))
+        """
+        array = np.asarray(cells)
+        single = array.ndim == 1
+        array = np.atleast_2d(array)
+        if array.ndim != 2 or array.shape[1] != 3 or not np.issubdtype(array.dtype, np.integer):
+            raise ValueError(f"cells must be an integer array of shape (M, 3), got {array.shape}")
+        limits = np.array(self.shape)
+        if np.any(array < 0) or np.any(array >= limits):
+            bad = array[np.any((array < 0) | (array >= limits), axis=1)][0]
+            raise ValueError(f"cells must lie in the grid of shape {self.shape}, got {tuple(bad)}")
+        i, j, k = array[:, 0], array[:, 1], array[:, 2]
+        out = np.stack([
+            self.rho_edges[i], self.rho_edges[i + 1],
+            self.theta_edges[j], self.theta_edges[j + 1],
+            self.phi_edges[k], self.phi_edges[k + 1],
+        ], axis=1)
+        return out[0] if single else out
+
+    def cell_centers(self, cells):
+        """Cartesian centre (mid-rho, mid-theta, mid-phi) of each cell, shape (M, 3)."""
+        bounds = np.atleast_2d(self.cell_bounds(cells))
+        sph = np.stack([
+            0.5 * (bounds[:, 0] + bounds[:, 1]),
+            0.5 * (bounds[:, 2] + bounds[:, 3]),
+            0.5 * (bounds[:, 4] + bounds[:, 5]),
+        ], axis=1)
+        centers = spherical_to_cartesian(sph)
+        return centers[0] if np.asarray(cells).ndim == 1 else centers
+
+
+def _points(name, points):
+    array = np.asarray(points, dtype=np.float64)
+    single = array.ndim == 1
+    if single:
+        array = array[None, :]
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (M, 3) or (3,), got {np.shape(points)}")
+    if not np.all(np.isfinite(array)):
+        row = int(np.argmax(~np.all(np.isfinite(array), axis=1)))
+        raise ValueError(f"{name} must be finite; row {row} is {array[row].tolist()}")
+    return np.ascontiguousarray(array), single
+
+
+def cartesian_to_spherical(points):
+    """(M, 3) Cartesian -> (M, 3) ``(rho, theta, phi)``, theta in (-pi, pi], phi in [-pi/2, pi/2]."""
+    array, single = _points("points", points)
+    x, y, z = array[:, 0], array[:, 1], array[:, 2]
+    out = np.stack([
+        np.sqrt(x * x + y * y + z * z),
+        np.arctan2(x + 0.0, z + 0.0),
+        np.arctan2(y + 0.0, np.sqrt(x * x + z * z)),
+    ], axis=1)
+    return out[0] if single else out
+
+
+def spherical_to_cartesian(spherical):
+    """(M, 3) ``(rho, theta, phi)`` -> (M, 3) Cartesian (x, y, z) in this package's frame."""
+    array, single = _points("spherical", spherical)
+    rho, theta, phi = array[:, 0], array[:, 1], array[:, 2]
+    out = np.stack([
+        rho * np.cos(phi) * np.sin(theta),
+        rho * np.sin(phi),
+        rho * np.cos(phi) * np.cos(theta),
+    ], axis=1)
+    return out[0] if single else out
+
+
+# A ROS body frame (x forward, y left, z up) maps to this package's frame
+# (z forward, y up, x = y cross z towards theta = +90 deg) by a fixed rotation; applied only
+# when asked, never silently.
+ROS_TO_GRID = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+
+
+def from_ros(vectors):
+    """Map (M, 3) points or directions from a ROS frame (x fwd, y left, z up) to the grid frame.
+
+    ROS forward (+x) becomes +z (theta = 0), ROS up (+z) becomes +y (phi = pi/2),
+    ROS left (+y) becomes +x (theta = +pi/2): a proper rotation (determinant +1), so
+    handedness is kept.
+    """
+    array, single = _points("vectors", vectors)
+    out = array @ ROS_TO_GRID.T
+    return out[0] if single else out

@@ -1,0 +1,118 @@
+"""Cartesian -> discrete log-spherical conversion (the paper's appendix, corrected).
+
+A *zone* extends a cell index past the region so the traversal can follow a ray
+outside it: ``-1`` is below the first edge (the egocentric gap for rho),
+``n`` is above the last edge.  For theta the zones are cyclic and ``n_theta``
+is the sector outside a partial range.
+
+Tie rule (GEOMETRY.md leaves it to us): a value on an interior edge belongs to
+the cell above it (``edges[i] <= v < edges[i+1]``); a value equal to the last
+edge belongs to the last cell, so the region is closed as in Eq. 1 and a ray
+running along the +y axis (phi == pi/2 everywhere) is inside when
+``phi_max == pi/2``.
+"""
+
+import numpy as np
+
+from .._jit import jit
+
+EXPLICIT = 0
+UNIFORM = 1
+LOG = 2
+PAPER = 3
+
+TWO_PI = 2.0 * np.pi
+
+
+@jit
+def locate(value, edges, kind):
+    """Zone of ``value`` among strictly increasing ``edges`` (see module doc)."""
+    n = edges.shape[0] - 1
+    lo = edges[0]
+    hi = edges[n]
+    if value < lo:
+        return -1
+    if value > hi:
+        return n
+    # Closed-form guess for the regular spacings, binary search otherwise; the
+    # guess is then corrected against the stored edges, so rounding in log()
+    # can never disagree with the edges themselves.
+    if kind == UNIFORM:
+        guess = int((value - lo) / (hi - lo) * n)
+    elif kind == LOG:
+        guess = int(np.log(value / lo) / np.log(hi / lo) * n)
+    elif kind == PAPER:
+        offset = value - lo
+        base = edges[1] - lo
+        guess = int(np.log(offset) / np.log(base)) if offset > 1.0 else 0
+    else:
+        guess = np.searchsorted(edges, value, side="right") - 1
+    if guess < 0:
+        guess = 0
+    if guess > n - 1:
+        guess = n - 1
+    # Each correction loop moves monotonically inside [0, n-1]: at most n steps.
+    while guess > 0 and value < edges[guess]:
+        guess -= 1
+    while guess < n - 1 and value >= edges[guess + 1]:
+        guess += 1
+    return guess
+
+
+@jit
+def azimuth(x, z):
+    """theta = atan2(x, z); ``+ 0.0`` turns -0.0 into +0.0 so the y axis has theta 0."""
+    return np.arctan2(x + 0.0, z + 0.0)
+
+
+@jit
+def elevation(x, y, z):
+    """phi = atan2(y, sqrt(x^2 + z^2)) in [-pi/2, pi/2] (GEOMETRY.md, not the printed Eq. 7)."""
+    return np.arctan2(y + 0.0, np.sqrt(x * x + z * z))
+
+
+@jit
+def wrap_theta(theta, theta_min):
+    """Wrap an azimuth into [theta_min, theta_min + 2*pi)."""
+    offset = (theta - theta_min) % TWO_PI
+    if offset >= TWO_PI or offset < 0.0:
+        offset = 0.0
+    return theta_min + offset
+
+
+@jit
+def theta_zone(x, z, theta_edges, theta_kind):
+    """Azimuthal zone of the point (x, ., z); ``n_theta`` outside a partial range."""
+    wrapped = wrap_theta(azimuth(x, z), theta_edges[0])
+    return locate(wrapped, theta_edges, theta_kind)
+
+
+@jit
+def phi_zone(x, y, z, phi_edges, phi_kind):
+    return locate(elevation(x, y, z), phi_edges, phi_kind)
+
+
+@jit
+def rho_zone(x, y, z, rho_edges, rho_kind):
+    return locate(np.sqrt(x * x + y * y + z * z), rho_edges, rho_kind)
+
+
+@jit
+def cells_of_points(points, rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind):
+    """(M, 3) float64 points -> (M, 3) int32 cells, rows of -1 outside the region."""
+    n_rho = rho_edges.shape[0] - 1
+    n_theta = theta_edges.shape[0] - 1
+    n_phi = phi_edges.shape[0] - 1
+    out = np.full((points.shape[0], 3), -1, dtype=np.int32)
+    for row in range(points.shape[0]):
+        x = points[row, 0]
+        y = points[row, 1]
+        z = points[row, 2]
+        i = rho_zone(x, y, z, rho_edges, rho_kind)
+        j = theta_zone(x, z, theta_edges, theta_kind)
+        k = phi_zone(x, y, z, phi_edges, phi_kind)
+        if 0 <= i < n_rho and 0 <= j < n_theta and 0 <= k < n_phi:
+            out[row, 0] = i
+            out[row, 1] = j
+            out[row, 2] = k
+    return out

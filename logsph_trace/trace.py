@@ -1,0 +1,223 @@
+"""Public tracing API: validate once in Python, then hand batches to the kernels."""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .grid import Grid
+from .kernels import exact as _exact
+
+METHODS = ("exact",)
+
+
+@dataclass(frozen=True)
+class Trace:
+    """The voxels one ray crosses, in order.
+
+    Attributes
+    ----------
+    cells : numpy.ndarray, int32, shape (n, 3)
+        ``(i, j, k)`` = (rho, theta, phi) cell indices, in the order the ray meets them.
+    t_enter, t_exit : numpy.ndarray, float64, shape (n,)
+        Distance along the ray (normalised direction, so in length units) at which
+        it enters and leaves each cell. Consecutive segments either touch
+        (``t_exit[s] == t_enter[s+1]``) and differ in their cell, or are separated
+        by a stretch outside the region (the egocentric gap, or outside a partial
+        angular range).
+    """
+
+    cells: np.ndarray
+    t_enter: np.ndarray
+    t_exit: np.ndarray
+
+    def __len__(self):
+        return self.cells.shape[0]
+
+    @property
+    def lengths(self):
+        """Length of the ray inside each cell, ``t_exit - t_enter``."""
+        return self.t_exit - self.t_enter
+
+    def unique(self):
+        """The set view the paper returns: each cell once, in order of first entry.
+
+        Returns
+        -------
+        numpy.ndarray, int32, shape (u, 3)
+        """
+        if len(self) == 0:
+            return self.cells.copy()
+        _, first = np.unique(self.cells, axis=0, return_index=True)
+        return self.cells[np.sort(first)]
+
+    def __repr__(self):
+        return f"Trace({len(self)} segments)"
+
+
+@dataclass(frozen=True)
+class Traces:
+    """Many traces in compressed-row (CSR) form.
+
+    Attributes
+    ----------
+    offsets : numpy.ndarray, int64, shape (m + 1,)
+        Ray ``r`` owns segments ``offsets[r]:offsets[r+1]``.
+    cells : numpy.ndarray, int32, shape (K, 3)
+    t_enter, t_exit : numpy.ndarray, float64, shape (K,)
+    """
+
+    offsets: np.ndarray
+    cells: np.ndarray
+    t_enter: np.ndarray
+    t_exit: np.ndarray
+
+    def __len__(self):
+        return self.offsets.shape[0] - 1
+
+    def __getitem__(self, row):
+        n_rays = len(self)
+        if not isinstance(row, (int, np.integer)):
+            raise TypeError(f"Traces index must be an integer, got {type(row).__name__}")
+        if row < 0:
+            row += n_rays
+        if not 0 <= row < n_rays:
+            raise IndexError(f"ray {row} out of range for {n_rays} traces")
+        lo, hi = self.offsets[row], self.offsets[row + 1]
+        return Trace(self.cells[lo:hi], self.t_enter[lo:hi], self.t_exit[lo:hi])
+
+    def __iter__(self):
+        for row in range(len(self)):
+            yield self[row]
+
+    @property
+    def counts(self):
+        """Number of segments of each ray, shape (m,)."""
+        return np.diff(self.offsets)
+
+    @property
+    def ray_index(self):
+        """For each segment, the ray it belongs to, shape (K,)."""
+        return np.repeat(np.arange(len(self)), self.counts)
+
+    def __repr__(self):
+        return f"Traces({len(self)} rays, {self.cells.shape[0]} segments)"
+
+
+def _check_grid(grid):
+    if not isinstance(grid, Grid):
+        raise ValueError(f"grid must be a logsph_trace.Grid, got {type(grid).__name__}")
+
+
+def _check_method(method):
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+
+
+def _vectors(name, value, rows=None):
+    """Coerce to a C-contiguous (m, 3) float64 array; reject NaN and inf."""
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numeric, got {value!r}") from None
+    if array.ndim == 1:
+        array = array[None, :]
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (m, 3) or (3,), got {np.shape(value)}")
+    if rows is not None and array.shape[0] != rows:
+        raise ValueError(f"{name} has {array.shape[0]} rows but origins has {rows}")
+    finite = np.all(np.isfinite(array), axis=1)
+    if not np.all(finite):
+        row = int(np.argmin(finite))
+        raise ValueError(f"{name} must be finite; row {row} is {array[row].tolist()}")
+    return np.ascontiguousarray(array)
+
+
+def _unit_directions(directions):
+    norms = np.sqrt(np.einsum("ij,ij->i", directions, directions))
+    if np.any(norms == 0.0):
+        row = int(np.argmin(norms))
+        raise ValueError(f"directions must be non-zero; row {row} is {directions[row].tolist()}")
+    return np.ascontiguousarray(directions / norms[:, None])
+
+
+def _rays(origins, directions):
+    if directions is None:
+        array = np.asarray(origins, dtype=np.float64)
+        if array.ndim != 2 or array.shape[1] != 6:
+            raise ValueError(
+                "with directions=None, origins must be one (m, 6) array of origin + direction, "
+                f"got shape {np.shape(origins)}"
+            )
+        origins, directions = array[:, :3], array[:, 3:]
+    origins = _vectors("origins", origins)
+    directions = _vectors("directions", directions, rows=origins.shape[0])
+    return origins, _unit_directions(directions)
+
+
+def _run_exact(grid, origins, directions, parallel):
+    args = grid.kernel_args()
+    count = _exact.count_rows_parallel if parallel else _exact.count_rows
+    fill = _exact.fill_rows_parallel if parallel else _exact.fill_rows
+    counts = count(origins, directions, *args)
+    offsets = np.zeros(origins.shape[0] + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    total = int(offsets[-1])
+    cells = np.empty((total, 3), dtype=np.int32)
+    t_enter = np.empty(total, dtype=np.float64)
+    t_exit = np.empty(total, dtype=np.float64)
+    fill(origins, directions, *args, offsets, cells, t_enter, t_exit)
+    return Traces(offsets, cells, t_enter, t_exit)
+
+
+def trace_many(grid, origins, directions=None, method="exact", parallel=True):
+    """Trace many rays through ``grid``.
+
+    Parameters
+    ----------
+    grid : Grid
+    origins : array_like, shape (m, 3), or (m, 6) with ``directions=None``
+        Ray origins; or one array of origin + direction per row (as Open3D does).
+    directions : array_like, shape (m, 3), optional
+        Ray directions, any non-zero length; they are normalised, so every
+        ``t`` returned is a distance from the origin.
+    method : {"exact"}
+        ``"exact"``: boundary stepping (every cell, exact entry/exit distances).
+    parallel : bool
+        Trace rays on all Numba threads (``prange``). The output is identical
+        to the serial run: a count pass sizes each ray's slice, a fill pass
+        writes it.
+
+    Returns
+    -------
+    Traces
+        CSR segments: ``traces[r]`` is the :class:`Trace` of ray ``r``.
+
+    Raises
+    ------
+    ValueError
+        Wrong shapes, NaN or infinite values, zero directions, unknown method,
+        or ``grid`` not a :class:`Grid` -- before any kernel runs.
+    """
+    _check_grid(grid)
+    _check_method(method)
+    origins, directions = _rays(origins, directions)
+    return _run_exact(grid, origins, directions, bool(parallel))
+
+
+def trace(grid, origin, direction, method="exact"):
+    """Trace one ray; see :func:`trace_many`.
+
+    Parameters
+    ----------
+    grid : Grid
+    origin, direction : array_like, shape (3,)
+    method : {"exact"}
+
+    Returns
+    -------
+    Trace
+    """
+    for name, value in (("origin", origin), ("direction", direction)):
+        if np.shape(value) != (3,):
+            raise ValueError(f"{name} must have shape (3,), got {np.shape(value)}")
+    return trace_many(grid, origin, direction, method=method, parallel=False)[0]
