@@ -30,13 +30,21 @@ def classify(points, rho_edges, theta_edges, phi_edges):
 
 
 def _quadratic_roots(a, half_b, c):
-    if a == 0.0:
-        return [] if half_b == 0.0 else [-c / (2.0 * half_b)]
+    """Real roots of a t^2 + 2 half_b t + c, without the cancellation of the textbook formula.
+
+    When the ray runs almost parallel to a cone's generatrix ``a`` is ~1e-16 and
+    ``(-half_b + sqrt(disc)) / a`` is noise; ``c / q`` keeps the finite root exact.
+    """
     disc = half_b * half_b - a * c
     if disc < 0.0:
         return []
-    root = np.sqrt(disc)
-    return [(-half_b - root) / a, (-half_b + root) / a]
+    q = -(half_b + np.copysign(np.sqrt(disc), half_b))
+    roots = []
+    if a != 0.0:
+        roots.append(q / a)
+    if q != 0.0:
+        roots.append(c / q)
+    return roots
 
 
 def crossings(origin, direction, rho_edges, theta_edges, phi_edges):
@@ -113,15 +121,29 @@ def normalise(cells, t_enter, t_exit, tol):
     return (np.array(out_cells, dtype=np.int64).reshape(-1, 3), np.array(out_t0), np.array(out_t1))
 
 
+# Near tangency to a sphere or cone the chord is 2 sqrt(R^2 - h^2): rounding of
+# h^2 by eps R^2 shows up as a sliver of up to ~sqrt(eps) R, in the oracle as in
+# the kernel. Tests that aim at exact tangencies allow slivers (and boundary
+# shifts) of this size; random rays are held to 1e-9.
+TANGENT_SLIVER = 2.0 * np.sqrt(np.finfo(np.float64).eps)
+
+
 def compare(got, want, scale, rel=1e-9):
-    """Return None when two traces agree (GEOMETRY.md), else a message saying where they differ."""
+    """Return None when two traces agree (GEOMETRY.md), else a message saying where they differ.
+
+    Segments shorter than ``rel * scale`` are dropped on both sides; the rest must
+    have equal cells and distances within ``rel`` (relative to the distance, or to
+    ``scale`` for distances near zero).
+    """
     tol = rel * scale
     got_cells, got_t0, got_t1 = normalise(*got, tol)
     want_cells, want_t0, want_t1 = normalise(*want, tol)
     if got_cells.shape != want_cells.shape or not np.array_equal(got_cells, want_cells):
         return f"cells differ:\n got  {got_cells.tolist()}\n want {want_cells.tolist()}"
-    slack = tol + rel * np.maximum(np.abs(want_t1), 1.0)
-    if not (np.all(np.abs(got_t0 - want_t0) <= 8 * slack) and np.all(np.abs(got_t1 - want_t1) <= 8 * slack)):
-        worst = max(np.max(np.abs(got_t0 - want_t0), initial=0), np.max(np.abs(got_t1 - want_t1), initial=0))
-        return f"distances differ by up to {worst:.3e} (tolerance {tol:.1e})"
+    # "Segment distances agree to 1e-9 relative": relative to the distance itself,
+    # or to the region's size for distances near zero.
+    allowed = rel * np.maximum(np.abs(want_t1), scale)
+    error = np.maximum(np.abs(got_t0 - want_t0), np.abs(got_t1 - want_t1))
+    if np.any(error > allowed):
+        return f"distances differ by up to {np.max(error):.3e} (allowed {np.min(allowed):.1e})"
     return None

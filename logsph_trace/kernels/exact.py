@@ -47,15 +47,16 @@ def _plane_time(ox, oz, dx, dz, edge_sin, edge_cos):
 
 
 @jit
-def _cone_time(oy, dy, ab, a2, b2, tan2, nappe, first_branch):
-    """Crossing of the elevation cone phi = edge on its own nappe.
+def _cone_time(oy, dy, ab, a2, b2, tan2, nappe, first_branch, branch_start, slack):
+    """Crossing of the elevation cone phi = edge on its own nappe, within the current branch.
 
     ``(o_y + t d_y)^2 = tan(phi)^2 ((o_x + t d_x)^2 + (o_z + t d_z)^2)`` solved
-    with the cancellation-free quadratic formula; ``ab``, ``a2``, ``b2`` are the
-    x-z dot products A.B, |A|^2, |B|^2 of origin A and direction B.  On the
-    branch before phi's turning point the earlier nappe root is the crossing,
-    after it the later one.  Returns NaN when rounding leaves no root on the
-    nappe (near the apex); the caller clamps.
+    with the cancellation-free quadratic formula (a ray parallel to a generatrix
+    has ``a ~ 0``); ``ab``, ``a2``, ``b2`` are the x-z dot products A.B, |A|^2,
+    |B|^2 of origin A and direction B.  A root before ``branch_start`` belongs
+    to the other branch.  On the branch before phi's turning point the earlier
+    root is the crossing, after it the later one.  Returns ``inf`` when no root
+    qualifies: the crossing is at infinity (a limit direction on the cone).
     """
     if nappe == 0.0:
         return -oy / dy
@@ -67,25 +68,34 @@ def _cone_time(oy, dy, ab, a2, b2, tan2, nappe, first_branch):
         disc = 0.0
     root = np.sqrt(disc)
     q = -(half_b + root) if half_b >= 0.0 else -(half_b - root)
-    t1 = q / a
-    t2 = c / q
-    ok1 = np.isfinite(t1) and nappe * (oy + t1 * dy) >= 0.0
-    ok2 = np.isfinite(t2) and nappe * (oy + t2 * dy) >= 0.0
-    if ok1 and ok2:
-        if first_branch:
-            return min(t1, t2)
-        return max(t1, t2)
-    if ok1:
-        return t1
-    if ok2:
-        return t2
-    return np.nan
+    earliest = branch_start - slack
+    best = np.inf
+    found = False
+    for t_root in (q / a, c / q):
+        if not (np.isfinite(t_root) and t_root >= earliest and nappe * (oy + t_root * dy) >= 0.0):
+            continue
+        if not found or (t_root < best if first_branch else t_root > best):
+            best = t_root
+            found = True
+    return best
 
 
 @jit
-def _clamp(t_candidate, t_low, t_high):
-    # ``not >=`` also catches NaN: a counted crossing then happens immediately.
-    if not t_candidate >= t_low:
+def _clamp(t_candidate, t_low, t_high, slack):
+    """Keep a counted crossing inside its branch ``[t_low, t_high]``.
+
+    A crossing a hair before ``t_low`` is a simultaneous one rounded the other
+    way: it happens now. One clearly in the past (by more than ``slack``) is a
+    crossing at infinity: the branch end was looked up exactly on a boundary
+    the ray only approaches (a limit direction on a half-plane or cone, where
+    the closed form returns +-inf or a huge value of either sign); it happens
+    at the branch end, i.e. never for the last branch. NaN happens now.
+    """
+    if t_candidate != t_candidate:
+        return t_low
+    if t_candidate < t_low - slack:
+        return t_high
+    if t_candidate < t_low:
         return t_low
     if t_candidate > t_high:
         return t_high
@@ -117,6 +127,9 @@ def trace_ray(
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
     inf = np.inf
+    # Rounding of a crossing time is ~1e-14 of the scene's size; a crossing found
+    # further in the past than this is one at infinity (see _clamp).
+    slack = 1e-9 * (rho_edges[n_rho] + np.sqrt(ox * ox + oy * oy + oz * oz))
 
     # x-z projections shared by theta and phi: A = (ox, oz), B = (dx, dz).
     ab = ox * dx + oz * dz
@@ -147,7 +160,7 @@ def trace_ray(
     if rho_steps == 0:
         return 0  # beyond rho_max and moving away: never inside
     edge = ir + 1 if rho_outward else ir
-    t_rho = _clamp(_sphere_time(t_closest, h2, rho_sq[edge], rho_outward), 0.0, inf)
+    t_rho = _clamp(_sphere_time(t_closest, h2, rho_sq[edge], rho_outward), 0.0, inf, slack)
 
     # ---- theta: one monotone sweep, or a jump where the line meets the y axis.
     n_zones_theta = n_theta if theta_full else n_theta + 1
@@ -156,7 +169,7 @@ def trace_ray(
     th_steps = 0
     th_jump_zone = -1
     t_theta = inf
-    if b2 == 0.0:
+    if dx == 0.0 and dz == 0.0:  # not b2 == 0: b2 underflows for |d_x|, |d_z| < 1e-154
         jt = theta_zone(ox, oz, theta_edges, theta_kind)
     elif sweep_sign == 0.0:
         jt_after = theta_zone(dx, dz, theta_edges, theta_kind)
@@ -186,7 +199,7 @@ def trace_ray(
         if th_steps > 0:
             edge = _theta_edge_ahead(jt, th_sigma, n_theta)
             t_theta = _clamp(
-                _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), 0.0, inf
+                _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), 0.0, inf, slack
             )
 
     # ---- phi: up to two monotone branches split at the turning point -q/p,
@@ -196,6 +209,7 @@ def trace_ray(
     ph_first = False
     ph_sigma = 0
     ph_steps = 0
+    ph_low = 0.0
     ph_high = inf
     ph2_start = -1
     ph2_sigma = 0
@@ -203,7 +217,9 @@ def trace_ray(
     ph_relocate = False
     t_phi = inf
     kp_limit = phi_zone(dx, dy, dz, phi_edges, phi_kind)
-    if slope == 0.0 and offset == 0.0:
+    # h2 == 0 (the line meets the origin) is tested on the cross product, which
+    # is exactly 0 for collinear o and d where ``slope`` may round to 1e-16.
+    if h2 == 0.0 or (slope == 0.0 and offset == 0.0):
         if ox == 0.0 and oy == 0.0 and oz == 0.0:
             kp = kp_limit
         else:
@@ -236,16 +252,19 @@ def trace_ray(
             ph_first = False
             ph_steps = ph2_steps
             ph_sigma = ph2_sigma
+            ph_low = ph_high
             ph_high = inf
         else:
             ph_relocate = True
-            t_phi = _clamp(ph_high, 0.0, inf)
+            t_phi = _clamp(ph_high, 0.0, inf, slack)
     if ph_steps > 0:
         edge = kp + 1 if ph_sigma > 0 else kp
         t_phi = _clamp(
-            _cone_time(oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], ph_first),
+            _cone_time(oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], ph_first,
+                       ph_low, slack),
             0.0,
             ph_high,
+            slack,
         )
 
     # ---- event loop: step the family with the nearest crossing.
@@ -296,7 +315,7 @@ def trace_ray(
             if rho_steps == 0:
                 break  # past rho_max and moving away for good
             edge = ir + 1 if rho_outward else ir
-            t_rho = _clamp(_sphere_time(t_closest, h2, rho_sq[edge], rho_outward), t_now, inf)
+            t_rho = _clamp(_sphere_time(t_closest, h2, rho_sq[edge], rho_outward), t_now, inf, slack)
         elif family == 1:
             if th_jump_zone >= 0:
                 jt = th_jump_zone
@@ -312,7 +331,8 @@ def trace_ray(
                 if th_steps > 0:
                     edge = _theta_edge_ahead(jt, th_sigma, n_theta)
                     t_theta = _clamp(
-                        _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), t_now, inf
+                        _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), t_now, inf,
+                        slack,
                     )
                 else:
                     t_theta = inf
@@ -323,6 +343,7 @@ def trace_ray(
                 ph_first = False
                 ph_steps = ph2_steps
                 ph_sigma = ph2_sigma
+                ph_low = ph_high
                 ph_high = inf
             else:
                 kp += ph_sigma
@@ -332,17 +353,20 @@ def trace_ray(
                         ph_first = False
                         ph_steps = ph2_steps
                         ph_sigma = ph2_sigma
+                        ph_low = ph_high
                         ph_high = inf
                     else:
                         ph_relocate = True
             if ph_relocate:
-                t_phi = _clamp(ph_high, t_now, inf)
+                t_phi = _clamp(ph_high, t_now, inf, slack)
             elif ph_steps > 0:
                 edge = kp + 1 if ph_sigma > 0 else kp
                 t_phi = _clamp(
-                    _cone_time(oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], ph_first),
+                    _cone_time(oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], ph_first,
+                               ph_low, slack),
                     t_now,
                     ph_high,
+                    slack,
                 )
             else:
                 t_phi = inf
