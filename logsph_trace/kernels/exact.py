@@ -268,12 +268,18 @@ def trace_ray(
         )
 
     # ---- event loop: step the family with the nearest crossing.
+    # Crossings that coincide (a corner where a sphere, a half-plane and a cone
+    # meet) come out a few ulps apart; the slivers between them (shorter than
+    # ``snap``) are cells the ray only touches. They are absorbed into the next
+    # segment, which starts where the last one ended, so coverage stays exact.
+    snap = 1e-3 * slack
     t_now = 0.0
     count = 0
     last_i = -1
     last_j = -1
     last_k = -1
-    last_exit = -1.0
+    last_exit = -inf
+    sliver_start = -1.0
     while True:
         t_next = t_rho
         family = 0
@@ -286,10 +292,23 @@ def trace_ray(
         if t_next == inf:
             break
         inside = 0 <= ir < n_rho and jt < n_theta and 0 <= kp < n_phi
-        if inside and t_next > t_now:
-            if count > 0 and last_exit == t_now and ir == last_i and jt == last_j and kp == last_k:
-                # Same cell on both sides of a zero-length detour (tangency, seam of a
-                # one-sector circle): extend instead of repeating the cell.
+        touching = count > 0 and t_now - last_exit <= snap
+        if not inside:
+            sliver_start = -1.0
+        elif t_next - t_now <= snap:
+            if sliver_start < 0.0 and not touching:
+                sliver_start = t_now
+        else:
+            if touching:
+                t_from = last_exit
+            elif sliver_start >= 0.0:
+                t_from = sliver_start
+            else:
+                t_from = t_now
+            sliver_start = -1.0
+            if touching and ir == last_i and jt == last_j and kp == last_k:
+                # The same cell on both sides of a sliver or a zero-length detour
+                # (tangency, the seam of a one-sector circle): extend, don't repeat.
                 if write:
                     t_exit[start + count - 1] = t_next
             else:
@@ -297,7 +316,7 @@ def trace_ray(
                     cells[start + count, 0] = ir
                     cells[start + count, 1] = jt
                     cells[start + count, 2] = kp
-                    t_enter[start + count] = t_now
+                    t_enter[start + count] = t_from
                     t_exit[start + count] = t_next
                 count += 1
                 last_i = ir
