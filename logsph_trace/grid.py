@@ -54,8 +54,8 @@ def _check_edges(name, edges):
     if not np.all(steps > 0):
         bad = int(np.argmin(steps))
         raise ValueError(
-            f"{name} must be strictly increasing; edges[{bad}]={array[bad]!r} "
-            f">= edges[{bad + 1}]={array[bad + 1]!r}"
+            f"{name} must be strictly increasing; edges[{bad}]={float(array[bad])!r} "
+            f">= edges[{bad + 1}]={float(array[bad + 1])!r}"
         )
     return array
 

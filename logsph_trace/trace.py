@@ -154,10 +154,9 @@ def _rays(origins, directions):
     return origins, _unit_directions(directions)
 
 
-def _run_exact(grid, origins, directions, parallel):
-    args = grid.kernel_args()
-    count = _exact.count_rows_parallel if parallel else _exact.count_rows
-    fill = _exact.fill_rows_parallel if parallel else _exact.fill_rows
+def run_csr(count, fill, origins, directions, args):
+    """Count pass, prefix sum, fill pass: every ray writes its own slice, so the
+    result does not depend on the thread count or the order rays finish in."""
     counts = count(origins, directions, *args)
     offsets = np.zeros(origins.shape[0] + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
@@ -167,6 +166,14 @@ def _run_exact(grid, origins, directions, parallel):
     t_exit = np.empty(total, dtype=np.float64)
     fill(origins, directions, *args, offsets, cells, t_enter, t_exit)
     return Traces(offsets, cells, t_enter, t_exit)
+
+
+def _run_exact(grid, origins, directions, parallel):
+    if parallel:
+        kernels = (_exact.count_rows_parallel, _exact.fill_rows_parallel)
+    else:
+        kernels = (_exact.count_rows, _exact.fill_rows)
+    return run_csr(*kernels, origins, directions, grid.kernel_args())
 
 
 def trace_many(grid, origins, directions=None, method="exact", parallel=True):

@@ -147,3 +147,24 @@ def compare(got, want, scale, rel=1e-9):
     if np.any(error > allowed):
         return f"distances differ by up to {np.max(error):.3e} (allowed {np.min(allowed):.1e})"
     return None
+
+
+def box_oracle_trace(origin, direction, low, high, shape):
+    """Brute-force Cartesian reference: every plane crossing, sorted, midpoints classified."""
+    origin = np.asarray(origin, dtype=np.float64)
+    direction = np.asarray(direction, dtype=np.float64)
+    direction = direction / np.linalg.norm(direction)
+    ts = [0.0]
+    for axis in range(3):
+        if direction[axis] != 0.0:
+            planes = np.linspace(low[axis], high[axis], shape[axis] + 1)
+            ts += list((planes - origin[axis]) / direction[axis])
+    ts = np.unique([t for t in ts if t >= 0.0])
+    starts, ends = ts[:-1], ts[1:]
+    mids = origin + 0.5 * (starts + ends)[:, None] * direction
+    size = (np.asarray(high) - np.asarray(low)) / np.asarray(shape)
+    index = np.floor((mids - low) / size).astype(np.int64)
+    inside = np.all((mids >= low) & (mids <= high), axis=1)
+    index = np.minimum(index, np.asarray(shape) - 1)
+    keep = inside & (ends > starts)
+    return index[keep], starts[keep], ends[keep]

@@ -1,0 +1,50 @@
+"""The kernels stay plain Python: with NUMBA_DISABLE_JIT=1 they give the compiled answers.
+
+Run in a subprocess on a small subset (the interpreter is ~100x slower), so
+coverage tools can see the kernels and a reader can step through them.
+"""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+
+import logsph_trace as lt
+
+SCRIPT = textwrap.dedent(
+    """
+    import sys
+    import numpy as np
+    import logsph_trace as lt
+    from logsph_trace.cartesian import CartesianGrid
+
+    rng = np.random.default_rng(12)
+    grid = lt.Grid(0.3, 10.0, 6, 8, 5, theta_range=(-2.5, 2.0), phi_range=(-0.6, 1.0))
+    origins = rng.uniform(-12, 12, (60, 3))
+    directions = rng.normal(size=(60, 3))
+    traces = lt.trace_many(grid, origins, directions, parallel=True)
+    cart = CartesianGrid((-10.0, -10.0, -10.0), (10.0, 10.0, 10.0), (7, 8, 9))
+    boxes = cart.trace_many(origins, directions)
+    np.savez(sys.argv[1], offsets=traces.offsets, cells=traces.cells, t_enter=traces.t_enter,
+             t_exit=traces.t_exit, box_offsets=boxes.offsets, box_cells=boxes.cells,
+             points=grid.cell_of(origins))
+    """
+)
+
+
+def test_kernels_run_without_jit(tmp_path):
+    out = tmp_path / "nojit.npz"
+    env = dict(os.environ, NUMBA_DISABLE_JIT="1")
+    subprocess.run([sys.executable, "-c", SCRIPT, str(out)], env=env, check=True, timeout=300)
+    plain = np.load(out)
+    jitted_out = tmp_path / "jit.npz"
+    env.pop("NUMBA_DISABLE_JIT")
+    subprocess.run([sys.executable, "-c", SCRIPT, str(jitted_out)], env=env, check=True, timeout=300)
+    jitted = np.load(jitted_out)
+    for name in ("offsets", "cells", "box_offsets", "box_cells", "points"):
+        np.testing.assert_array_equal(plain[name], jitted[name], err_msg=name)
+    np.testing.assert_allclose(plain["t_enter"], jitted["t_enter"], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(plain["t_exit"], jitted["t_exit"], rtol=1e-12, atol=1e-12)
+    assert lt.Grid(0.3, 10.0, 6, 8, 5).shape == (6, 8, 5)

@@ -1,0 +1,114 @@
+"""Bad input is a ValueError naming the argument and the value, raised before any kernel runs."""
+
+import numpy as np
+import pytest
+
+import logsph_trace as lt
+
+PI = np.pi
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(rho_min=5.0, rho_max=5.0), "rho_min must be < rho_max"),
+        (dict(rho_min=6.0, rho_max=5.0), "rho_min must be < rho_max"),
+        (dict(rho_min=0.0), "log spacing needs rho_min > 0"),
+        (dict(rho_min=-1.0, spacing="uniform"), "rho_min must be >= 0"),
+        (dict(rho_min=1.0, rho_max=1.5, spacing="paper"), r"paper spacing needs rho_max - rho_min > 1"),
+        (dict(spacing="cubic"), "spacing must be one of"),
+        (dict(n_rho=0), "n_rho must be a positive integer"),
+        (dict(n_theta=-3), "n_theta must be a positive integer"),
+        (dict(n_phi=2.5), "n_phi must be a positive integer"),
+        (dict(n_phi=True), "n_phi must be a positive integer"),
+        (dict(rho_max=np.nan), "rho_max must be a finite number"),
+        (dict(rho_max=np.inf), "rho_max must be a finite number"),
+        (dict(theta_range=(1.0, 0.5)), "theta_range must be increasing"),
+        (dict(theta_range=(0.0, 0.0)), "theta_range must be increasing"),
+        (dict(theta_range=(-PI, PI + 0.1)), "an azimuth range is at most 2\\*pi"),
+        (dict(theta_range=(0.0,)), "theta_range must be a pair"),
+        (dict(phi_range=(-2.0, 0.0)), r"phi_range must lie in \[-pi/2, pi/2\]"),
+        (dict(phi_range=(0.5, 0.5)), "phi_range must be increasing"),
+    ],
+)
+def test_bad_grid(kwargs, match):
+    args = dict(rho_min=0.3, rho_max=10.0, n_rho=4, n_theta=4, n_phi=4)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        lt.Grid(**args)
+
+
+@pytest.mark.parametrize(
+    "edges, match",
+    [
+        (([1, 2, 2], [0, 1], [0, 1]), r"rho_edges must be strictly increasing; edges\[1\]=2.0"),
+        (([1, 2], [0, 1, 0.5], [0, 1]), "theta_edges must be strictly increasing"),
+        (([1, 2], [0, 7], [0, 1]), "theta_edges spans"),
+        (([1, 2], [0, 1], [0, 2]), "phi_edges must lie in"),
+        (([1], [0, 1], [0, 1]), "at least 2 edges"),
+        (([-1, 2], [0, 1], [0, 1]), r"rho_edges\[0\] must be >= 0"),
+        (([1, np.nan], [0, 1], [0, 1]), "rho_edges must be finite"),
+        (([[1, 2]], [0, 1], [0, 1]), "rho_edges must be 1-D"),
+        ((["a", "b"], [0, 1], [0, 1]), "rho_edges must be a 1-D array of numbers"),
+    ],
+)
+def test_bad_edges(edges, match):
+    with pytest.raises(ValueError, match=match):
+        lt.Grid.from_edges(*edges)
+
+
+def test_bad_increments():
+    with pytest.raises(ValueError, match="does not divide the range"):
+        lt.Grid.from_increments(10, 80, 10, d_theta=7.0)
+    with pytest.raises(ValueError, match="d_phi must be > 0 degrees"):
+        lt.Grid.from_increments(10, 80, 10, d_phi=-1.0)
+
+
+GRID = lt.Grid(0.3, 10.0, 4, 4, 4)
+
+
+@pytest.mark.parametrize(
+    "origins, directions, match",
+    [
+        ([[0, 0, np.nan]], [[1, 0, 0]], r"origins must be finite; row 0 is \[0.0, 0.0, nan\]"),
+        ([[0, 0, 0], [1, 2, 3]], [[1, 0, 0], [np.inf, 0, 0]], "directions must be finite; row 1"),
+        ([[0, 0, 0]], [[0, 0, 0]], r"directions must be non-zero; row 0 is \[0.0, 0.0, 0.0\]"),
+        ([[0, 0]], [[1, 0, 0]], r"origins must have shape \(m, 3\) or \(3,\)"),
+        ([[0, 0, 0], [1, 1, 1]], [[1, 0, 0]], "directions has 1 rows but origins has 2"),
+        (np.zeros((2, 5)), None, r"origins must be one \(m, 6\) array"),
+        ([["x", 0, 0]], [[1, 0, 0]], "origins must be numeric"),
+    ],
+)
+def test_bad_rays(origins, directions, match):
+    with pytest.raises(ValueError, match=match):
+        lt.trace_many(GRID, origins, directions)
+
+
+def test_bad_method_and_grid():
+    with pytest.raises(ValueError, match="method must be one of"):
+        lt.trace(GRID, [0, 0, 0], [1, 0, 0], method="magic")
+    with pytest.raises(ValueError, match="grid must be a logsph_trace.Grid"):
+        lt.trace("grid", [0, 0, 0], [1, 0, 0])
+    with pytest.raises(ValueError, match=r"origin must have shape \(3,\)"):
+        lt.trace(GRID, [[0, 0, 0]], [1, 0, 0])
+
+
+def test_bad_points():
+    with pytest.raises(ValueError, match="points must be finite"):
+        GRID.cell_of([[0, 0, np.nan]])
+    with pytest.raises(ValueError, match=r"points must have shape \(M, 3\)"):
+        GRID.cell_of(np.zeros((4, 2)))
+
+
+def test_inputs_are_coerced():
+    # Integer, non-contiguous and float32 inputs are accepted and give the float64 answer.
+    origins = np.arange(12, dtype=np.int64).reshape(4, 3)[:, ::-1]
+    directions = np.ones((4, 3), dtype=np.float32)
+    got = lt.trace_many(GRID, origins, directions)
+    want = lt.trace_many(GRID, origins.astype(float).copy(), np.ones((4, 3)))
+    np.testing.assert_array_equal(got.cells, want.cells)
+
+
+def test_empty_batch():
+    traces = lt.trace_many(GRID, np.empty((0, 3)), np.empty((0, 3)))
+    assert len(traces) == 0 and traces.offsets.tolist() == [0]
