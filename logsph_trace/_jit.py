@@ -8,6 +8,8 @@ crossing at infinity).  ``fastmath`` stays off: it may reorder the tie rules
 and NaN checks the exactness tests hold us to.
 """
 
+import types
+
 import numba
 
 _OPTIONS = dict(cache=True, nogil=True, error_model="numpy")
@@ -19,3 +21,21 @@ def jit(func=None, **overrides):
     if func is None:
         return lambda f: numba.njit(**options)(f)
     return numba.njit(**options)(func)
+
+
+def jit_serial_and_parallel(func):
+    """Compile one ``prange`` source twice: serially, and with ``parallel=True``.
+
+    Numba's on-disk cache names its files after the function's qualified name,
+    so the two builds of one function would overwrite each other's cache and a
+    later process could load the serial code for the parallel entry point. The
+    parallel build therefore gets its own copy of the function, named
+    ``<name>_parallel``.
+    """
+    twin = types.FunctionType(
+        func.__code__, func.__globals__, func.__name__ + "_parallel",
+        func.__defaults__, func.__closure__,
+    )
+    twin.__qualname__ = func.__qualname__ + "_parallel"
+    twin.__doc__ = func.__doc__
+    return jit(func), jit(twin, parallel=True)

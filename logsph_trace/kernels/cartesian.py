@@ -7,7 +7,7 @@ count pass + fill pass, same segment output) so timings compare like for like.
 import numpy as np
 from numba import prange
 
-from .._jit import jit
+from .._jit import jit, jit_serial_and_parallel
 
 
 @jit
@@ -105,7 +105,5 @@ def _fill_box_rows(origins, directions, low, size, shape, offsets, cells, t_ente
         )
 
 
-count_box_rows = jit(_count_box_rows)
-fill_box_rows = jit(_fill_box_rows)
-count_box_rows_parallel = jit(_count_box_rows, parallel=True)
-fill_box_rows_parallel = jit(_fill_box_rows, parallel=True)
+count_box_rows, count_box_rows_parallel = jit_serial_and_parallel(_count_box_rows)
+fill_box_rows, fill_box_rows_parallel = jit_serial_and_parallel(_fill_box_rows)

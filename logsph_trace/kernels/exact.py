@@ -19,15 +19,20 @@ public ``cell_of`` uses, so the *number* of crossings of every family is fixed
 before stepping.  Crossing *times* come from closed forms (Eq. 9a, 9c and the
 exact cone quadratic of GEOMETRY.md) and are clamped into the branch, so
 rounding can move a crossing by an ulp or two but can never drop one or add
-one: the indices cannot drift.  Each loop iteration consumes one counted
-crossing, which bounds the loop by 2 (n_rho + 1) + (n_theta + 2) +
-2 (n_phi + 1) + 2 iterations.
+one: the indices cannot drift.
+
+Each family's crossings form a sorted list, computed in a loop of independent
+square roots and divisions (the CPU overlaps them); the traversal is then a
+three-way merge of the lists, as cheap per voxel as Amanatides & Woo's step.
+Every loop runs over a count fixed beforehand, at most ``scratch_size``.
 """
+
+import math
 
 import numpy as np
 from numba import prange
 
-from .._jit import jit
+from .._jit import jit, jit_serial_and_parallel
 from .locate import TWO_PI, azimuth, locate, phi_zone, rho_zone, theta_zone
 
 
@@ -63,21 +68,19 @@ def _cone_time(oy, dy, ab, a2, b2, tan2, nappe, first_branch, branch_start, slac
     a = dy * dy - tan2 * b2
     half_b = oy * dy - tan2 * ab
     c = oy * oy - tan2 * a2
-    disc = half_b * half_b - a * c
-    if disc < 0.0:
-        disc = 0.0
-    root = np.sqrt(disc)
-    q = -(half_b + root) if half_b >= 0.0 else -(half_b - root)
+    disc = max(half_b * half_b - a * c, 0.0)
+    q = -(half_b + math.copysign(math.sqrt(disc), half_b))
+    t1 = q / a
+    t2 = c / q
     earliest = branch_start - slack
-    best = np.inf
-    found = False
-    for t_root in (q / a, c / q):
-        if not (np.isfinite(t_root) and t_root >= earliest and nappe * (oy + t_root * dy) >= 0.0):
-            continue
-        if not found or (t_root < best if first_branch else t_root > best):
-            best = t_root
-            found = True
-    return best
+    # Written as selects, not branches: ``earliest <= t < inf`` also rejects NaN,
+    # and the nappe test keeps the cone half whose sign of y matches phi.
+    ok1 = (t1 >= earliest) & (t1 < np.inf) & (nappe * (oy + t1 * dy) >= 0.0)
+    ok2 = (t2 >= earliest) & (t2 < np.inf) & (nappe * (oy + t2 * dy) >= 0.0)
+    if first_branch:
+        return min(t1 if ok1 else np.inf, t2 if ok2 else np.inf)
+    latest = max(t1 if ok1 else -np.inf, t2 if ok2 else -np.inf)
+    return latest if latest > -np.inf else np.inf
 
 
 @jit
@@ -91,15 +94,9 @@ def _clamp(t_candidate, t_low, t_high, slack):
     the closed form returns +-inf or a huge value of either sign); it happens
     at the branch end, i.e. never for the last branch. NaN happens now.
     """
-    if t_candidate != t_candidate:
-        return t_low
-    if t_candidate < t_low - slack:
-        return t_high
-    if t_candidate < t_low:
-        return t_low
-    if t_candidate > t_high:
-        return t_high
-    return t_candidate
+    t_kept = t_high if t_candidate < t_low - slack else t_candidate
+    t_kept = t_kept if t_kept >= t_low else t_low  # also NaN -> now
+    return t_kept if t_kept <= t_high else t_high
 
 
 @jit
@@ -110,18 +107,42 @@ def _theta_edge_ahead(zone, sigma, n_theta):
     return zone if zone < n_theta else n_theta
 
 
+# Rows of the per-ray scratch: crossing times and the zone entered, per family.
+RHO = 0
+THETA = 1
+PHI = 2
+
+
+@jit
+def scratch_size(n_rho, n_theta, n_phi):
+    """Crossings one ray can have in any family (each loop below is bounded by it).
+
+    rho: in and out through every sphere, 2 (n_rho + 1); theta: one sweep of
+    fewer than n_theta + 1 zones plus a wrap, or one jump; phi: two monotone
+    branches, 2 (n_phi + 1), plus one relocation at the origin. Two more slots:
+    slot 0 holds the starting zone, and an ``inf`` sentinel ends each list.
+    """
+    return max(2 * (n_rho + 1), n_theta + 2, 2 * (n_phi + 1) + 1) + 2
+
+
 @jit
 def trace_ray(
     ox, oy, oz, dx, dy, dz,
     rho_edges, rho_sq, rho_kind,
     theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
     phi_edges, phi_tan2, phi_nappe, phi_kind,
-    cells, t_enter, t_exit, start, write,
+    times, zones, cells, t_enter, t_exit, start, write,
 ):
     """Trace one ray (unit direction) and return its number of segments.
 
-    With ``write`` the segments go to ``cells[start:]``, ``t_enter[start:]``,
+    ``times`` and ``zones`` are scratch of shape (3, scratch_size(...)). With
+    ``write`` the segments go to ``cells[start:]``, ``t_enter[start:]``,
     ``t_exit[start:]``; without it nothing is written (the count pass).
+
+    Three phases: (1) per family, the zone at each branch end and so the number
+    of crossings; (2) per family, the crossing times in order -- independent
+    square roots and divisions the CPU can overlap; (3) a three-way merge of
+    the sorted lists, emitting a segment whenever the ray is inside.
     """
     n_rho = rho_edges.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
@@ -136,7 +157,7 @@ def trace_ray(
     a2 = ox * ox + oz * oz
     b2 = dx * dx + dz * dz
 
-    # ---- rho: two monotone branches split at the closest approach t_c.
+    # ---- rho: falls until the closest approach t_c, then rises (Eq. 9a).
     t_closest = -(ox * dx + oy * dy + oz * dz)
     cross_x = oy * dz - oz * dy
     cross_y = oz * dx - ox * dz
@@ -144,31 +165,36 @@ def trace_ray(
     h2 = cross_x * cross_x + cross_y * cross_y + cross_z * cross_z
     ir = rho_zone(ox, oy, oz, rho_edges, rho_kind)
     if t_closest > 0.0:
-        ir_turn = locate(np.sqrt(h2), rho_edges, rho_kind)
-        if ir_turn > ir:
-            ir_turn = ir
-        rho_outward = False
-        rho_steps = ir - ir_turn
+        ir_turn = min(locate(np.sqrt(h2), rho_edges, rho_kind), ir)
+        rho_steps_in = ir - ir_turn
         rho_steps_out = n_rho - ir_turn
     else:
-        rho_outward = True
-        rho_steps = n_rho - ir
-        rho_steps_out = 0
-    if not rho_outward and rho_steps == 0:
-        rho_outward = True
-        rho_steps = rho_steps_out
-    if rho_steps == 0:
+        rho_steps_in = 0
+        rho_steps_out = n_rho - ir
+    n_r = 0
+    zone = ir
+    t_prev = 0.0
+    for _ in range(rho_steps_in):
+        t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone], False), t_prev, inf, slack)
+        zone -= 1
+        times[RHO, n_r + 1] = t_prev
+        zones[RHO, n_r + 1] = zone
+        n_r += 1
+    for _ in range(rho_steps_out):
+        t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone + 1], True), t_prev, inf, slack)
+        zone += 1
+        times[RHO, n_r + 1] = t_prev
+        zones[RHO, n_r + 1] = zone
+        n_r += 1
+    if n_r == 0:
         return 0  # beyond rho_max and moving away: never inside
-    edge = ir + 1 if rho_outward else ir
-    t_rho = _clamp(_sphere_time(t_closest, h2, rho_sq[edge], rho_outward), 0.0, inf, slack)
+    # The last rho crossing leaves rho_max for good: nothing after it matters.
+    t_final = times[RHO, n_r]
 
     # ---- theta: one monotone sweep, or a jump where the line meets the y axis.
     n_zones_theta = n_theta if theta_full else n_theta + 1
     sweep_sign = oz * dx - ox * dz
-    th_sigma = 0
-    th_steps = 0
-    th_jump_zone = -1
-    t_theta = inf
+    n_t = 0
     if dx == 0.0 and dz == 0.0:  # not b2 == 0: b2 underflows for |d_x|, |d_z| < 1e-154
         jt = theta_zone(ox, oz, theta_edges, theta_kind)
     elif sweep_sign == 0.0:
@@ -176,9 +202,10 @@ def trace_ray(
         t_axis = -ab / b2
         if t_axis > 0.0:
             jt = theta_zone(ox, oz, theta_edges, theta_kind)
-            if jt != jt_after:
-                th_jump_zone = jt_after
-                t_theta = t_axis
+            if jt != jt_after and t_axis <= t_final:
+                times[THETA, 1] = t_axis
+                zones[THETA, 1] = jt_after
+                n_t = 1
         else:
             jt = jt_after
     else:
@@ -196,27 +223,33 @@ def trace_ray(
             gap = ((theta_edges[edge] - theta_start) * th_sigma) % TWO_PI
             if gap < sweep:
                 th_steps = n_zones_theta
-        if th_steps > 0:
-            edge = _theta_edge_ahead(jt, th_sigma, n_theta)
-            t_theta = _clamp(
-                _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), 0.0, inf, slack
+        zone = jt
+        t_prev = 0.0
+        for _ in range(th_steps):
+            edge = _theta_edge_ahead(zone, th_sigma, n_theta)
+            t_prev = _clamp(
+                _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), t_prev, inf, slack
             )
+            if t_prev > t_final:
+                break
+            zone += th_sigma
+            if zone == n_zones_theta:
+                zone = 0
+            elif zone < 0:
+                zone = n_zones_theta - 1
+            times[THETA, n_t + 1] = t_prev
+            zones[THETA, n_t + 1] = zone
+            n_t += 1
 
     # ---- phi: up to two monotone branches split at the turning point -q/p,
-    # or piecewise constant with a jump at the origin when p == q == 0.
+    # or piecewise constant with a jump at the origin.
     slope = dy * ab - oy * b2
     offset = dy * a2 - oy * ab
-    ph_first = False
-    ph_sigma = 0
-    ph_steps = 0
-    ph_low = 0.0
-    ph_high = inf
-    ph2_start = -1
-    ph2_sigma = 0
-    ph2_steps = 0
-    ph_relocate = False
-    t_phi = inf
     kp_limit = phi_zone(dx, dy, dz, phi_edges, phi_kind)
+    t_turn = inf  # end of the first branch
+    ph1_steps = 0
+    ph2_start = -1
+    ph2_steps = 0
     # h2 == 0 (the line meets the origin) is tested on the cross product, which
     # is exactly 0 for collinear o and d where ``slope`` may round to 1e-16.
     if h2 == 0.0 or (slope == 0.0 and offset == 0.0):
@@ -225,54 +258,84 @@ def trace_ray(
         else:
             kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
             if t_closest > 0.0 and h2 == 0.0 and kp != kp_limit:
-                ph_first = True
-                ph_high = t_closest
+                t_turn = t_closest
                 ph2_start = kp_limit
     else:
         kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
-        t_turn = -offset / slope if slope != 0.0 else inf
-        if 0.0 < t_turn < inf:
-            kp_turn = phi_zone(
-                ox + t_turn * dx, oy + t_turn * dy, oz + t_turn * dz, phi_edges, phi_kind
-            )
-            ph_first = True
-            ph_high = t_turn
-            ph_steps = abs(kp_turn - kp)
-            ph_sigma = 1 if kp_turn > kp else -1
-            ph2_start = kp_turn
-            ph2_steps = abs(kp_limit - kp_turn)
-            ph2_sigma = 1 if kp_limit > kp_turn else -1
+        turn = -offset / slope if slope != 0.0 else inf
+        if 0.0 < turn < inf:
+            t_turn = turn
+            ph2_start = phi_zone(ox + turn * dx, oy + turn * dy, oz + turn * dz, phi_edges, phi_kind)
+            ph1_steps = abs(ph2_start - kp)
+            ph2_steps = abs(kp_limit - ph2_start)
         else:
-            ph_steps = abs(kp_limit - kp)
-            ph_sigma = 1 if kp_limit > kp else -1
-    # Leave an exhausted first branch: at once if the zone carries over,
-    # by a relocation event at its end if the zone jumps (origin crossing).
-    if ph_first and ph_steps == 0:
-        if ph2_start == kp:
-            ph_first = False
-            ph_steps = ph2_steps
-            ph_sigma = ph2_sigma
-            ph_low = ph_high
-            ph_high = inf
-        else:
-            ph_relocate = True
-            t_phi = _clamp(ph_high, 0.0, inf, slack)
-    if ph_steps > 0:
-        edge = kp + 1 if ph_sigma > 0 else kp
-        t_phi = _clamp(
-            _cone_time(oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], ph_first,
-                       ph_low, slack),
-            0.0,
-            ph_high,
-            slack,
+            ph2_start = kp
+            ph2_steps = abs(kp_limit - kp)
+    n_p = 0
+    zone = kp
+    t_prev = 0.0
+    done = False  # a crossing past t_final ends the list
+    sigma = 1 if ph2_start > kp else -1
+    for _ in range(ph1_steps):
+        edge = zone + 1 if sigma > 0 else zone
+        t_prev = _clamp(
+            _cone_time(oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], True, 0.0, slack),
+            t_prev, t_turn, slack,
         )
+        if t_prev > t_final:
+            done = True
+            break
+        zone += sigma
+        times[PHI, n_p + 1] = t_prev
+        zones[PHI, n_p + 1] = zone
+        n_p += 1
+    if not done and zone != ph2_start:
+        # Only through the origin: phi jumps between opposite directions.
+        t_prev = _clamp(t_turn, t_prev, inf, slack)
+        if t_prev > t_final:
+            done = True
+        else:
+            zone = ph2_start
+            times[PHI, n_p + 1] = t_prev
+            zones[PHI, n_p + 1] = zone
+            n_p += 1
+    if not done:
+        sigma = 1 if kp_limit > zone else -1
+        branch_start = t_turn if t_turn < inf else 0.0
+        for _ in range(ph2_steps):
+            edge = zone + 1 if sigma > 0 else zone
+            t_prev = _clamp(
+                _cone_time(
+                    oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], False, branch_start, slack
+                ),
+                t_prev, inf, slack,
+            )
+            if t_prev > t_final:
+                break
+            zone += sigma
+            times[PHI, n_p + 1] = t_prev
+            zones[PHI, n_p + 1] = zone
+            n_p += 1
 
-    # ---- event loop: step the family with the nearest crossing.
+    # ---- merge the three sorted lists; emit while inside.
     # Crossings that coincide (a corner where a sphere, a half-plane and a cone
     # meet) come out a few ulps apart; the slivers between them (shorter than
     # ``snap``) are cells the ray only touches. They are absorbed into the next
     # segment, which starts where the last one ended, so coverage stays exact.
     snap = 1e-3 * slack
+    zones[RHO, 0] = ir
+    zones[THETA, 0] = jt
+    zones[PHI, 0] = kp
+    times[RHO, n_r + 1] = inf
+    times[THETA, n_t + 1] = inf
+    times[PHI, n_p + 1] = inf
+    # Crossings consumed so far per family: the current zone is zones[f, done_f]
+    # and the next crossing times[f, done_f + 1]. Picking the family is two
+    # selects and advancing is a flag add, so the loop has no branch on which
+    # family crosses -- the branch Amanatides & Woo mispredict on every voxel.
+    done_r = 0
+    done_t = 0
+    done_p = 0
     t_now = 0.0
     count = 0
     last_i = -1
@@ -280,154 +343,107 @@ def trace_ray(
     last_k = -1
     last_exit = -inf
     sliver_start = -1.0
-    while True:
-        t_next = t_rho
-        family = 0
-        if t_theta < t_next:
-            t_next = t_theta
-            family = 1
-        if t_phi < t_next:
-            t_next = t_phi
-            family = 2
-        if t_next == inf:
-            break
+    for _ in range(n_r + n_t + n_p):
+        t_rho = times[RHO, done_r + 1]
+        t_theta = times[THETA, done_t + 1]
+        t_phi = times[PHI, done_p + 1]
+        t_angle = min(t_theta, t_phi)
+        t_next = max(min(t_rho, t_angle), t_now)
+        ir = zones[RHO, done_r]
+        jt = zones[THETA, done_t]
+        kp = zones[PHI, done_p]
         inside = 0 <= ir < n_rho and jt < n_theta and 0 <= kp < n_phi
-        touching = count > 0 and t_now - last_exit <= snap
-        if not inside:
-            sliver_start = -1.0
-        elif t_next - t_now <= snap:
-            if sliver_start < 0.0 and not touching:
-                sliver_start = t_now
-        else:
-            if touching:
-                t_from = last_exit
-            elif sliver_start >= 0.0:
-                t_from = sliver_start
+        if inside:
+            touching = count > 0 and t_now - last_exit <= snap
+            if t_next - t_now <= snap:
+                if sliver_start < 0.0 and not touching:
+                    sliver_start = t_now
             else:
-                t_from = t_now
-            sliver_start = -1.0
-            if touching and ir == last_i and jt == last_j and kp == last_k:
-                # The same cell on both sides of a sliver or a zero-length detour
-                # (tangency, the seam of a one-sector circle): extend, don't repeat.
-                if write:
-                    t_exit[start + count - 1] = t_next
-            else:
-                if write:
-                    cells[start + count, 0] = ir
-                    cells[start + count, 1] = jt
-                    cells[start + count, 2] = kp
-                    t_enter[start + count] = t_from
-                    t_exit[start + count] = t_next
-                count += 1
-                last_i = ir
-                last_j = jt
-                last_k = kp
-            last_exit = t_next
-        t_now = t_next
-
-        if family == 0:
-            ir += 1 if rho_outward else -1
-            rho_steps -= 1
-            if rho_steps == 0 and not rho_outward:
-                rho_outward = True
-                rho_steps = rho_steps_out
-            if rho_steps == 0:
-                break  # past rho_max and moving away for good
-            edge = ir + 1 if rho_outward else ir
-            t_rho = _clamp(_sphere_time(t_closest, h2, rho_sq[edge], rho_outward), t_now, inf, slack)
-        elif family == 1:
-            if th_jump_zone >= 0:
-                jt = th_jump_zone
-                th_jump_zone = -1
-                t_theta = inf
-            else:
-                jt += th_sigma
-                if jt == n_zones_theta:
-                    jt = 0
-                elif jt < 0:
-                    jt = n_zones_theta - 1
-                th_steps -= 1
-                if th_steps > 0:
-                    edge = _theta_edge_ahead(jt, th_sigma, n_theta)
-                    t_theta = _clamp(
-                        _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), t_now, inf,
-                        slack,
-                    )
+                if touching:
+                    t_from = last_exit
+                elif sliver_start >= 0.0:
+                    t_from = sliver_start
                 else:
-                    t_theta = inf
+                    t_from = t_now
+                sliver_start = -1.0
+                if touching and ir == last_i and jt == last_j and kp == last_k:
+                    # The same cell on both sides of a sliver or a zero-length detour
+                    # (tangency, the seam of a one-sector circle): extend, don't repeat.
+                    if write:
+                        t_exit[start + count - 1] = t_next
+                else:
+                    if write:
+                        cells[start + count, 0] = ir
+                        cells[start + count, 1] = jt
+                        cells[start + count, 2] = kp
+                        t_enter[start + count] = t_from
+                        t_exit[start + count] = t_next
+                    count += 1
+                    last_i = ir
+                    last_j = jt
+                    last_k = kp
+                last_exit = t_next
         else:
-            if ph_relocate:
-                kp = ph2_start
-                ph_relocate = False
-                ph_first = False
-                ph_steps = ph2_steps
-                ph_sigma = ph2_sigma
-                ph_low = ph_high
-                ph_high = inf
-            else:
-                kp += ph_sigma
-                ph_steps -= 1
-                if ph_first and ph_steps == 0:
-                    if ph2_start == kp:
-                        ph_first = False
-                        ph_steps = ph2_steps
-                        ph_sigma = ph2_sigma
-                        ph_low = ph_high
-                        ph_high = inf
-                    else:
-                        ph_relocate = True
-            if ph_relocate:
-                t_phi = _clamp(ph_high, t_now, inf, slack)
-            elif ph_steps > 0:
-                edge = kp + 1 if ph_sigma > 0 else kp
-                t_phi = _clamp(
-                    _cone_time(oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], ph_first,
-                               ph_low, slack),
-                    t_now,
-                    ph_high,
-                    slack,
-                )
-            else:
-                t_phi = inf
+            sliver_start = -1.0
+        t_now = t_next
+        # Bitwise ``&`` on booleans, not ``and``: no short-circuit branch.
+        rho_first = t_rho <= t_angle
+        theta_first = t_theta <= t_phi
+        done_r += rho_first
+        done_t += (not rho_first) & theta_first
+        done_p += (not rho_first) & (not theta_first)
+        if done_r == n_r:
+            break  # past rho_max and moving away for good
     return count
+
+
+# Rays are handed out in blocks so each block allocates its scratch once.
+BLOCK = 256
 
 
 def _count_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
                 theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind):
     n_rays = origins.shape[0]
     counts = np.empty(n_rays, dtype=np.int64)
+    size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
     no_cells = np.empty((0, 3), dtype=np.int32)
     no_times = np.empty(0, dtype=np.float64)
-    for row in prange(n_rays):
-        counts[row] = trace_ray(
-            origins[row, 0], origins[row, 1], origins[row, 2],
-            directions[row, 0], directions[row, 1], directions[row, 2],
-            rho_edges, rho_sq, rho_kind,
-            theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
-            phi_edges, phi_tan2, phi_nappe, phi_kind,
-            no_cells, no_times, no_times, 0, False,
-        )
+    for block in prange((n_rays + BLOCK - 1) // BLOCK):
+        times = np.empty((3, size), dtype=np.float64)
+        zones = np.empty((3, size), dtype=np.int64)
+        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            counts[row] = trace_ray(
+                origins[row, 0], origins[row, 1], origins[row, 2],
+                directions[row, 0], directions[row, 1], directions[row, 2],
+                rho_edges, rho_sq, rho_kind,
+                theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
+                phi_edges, phi_tan2, phi_nappe, phi_kind,
+                times, zones, no_cells, no_times, no_times, 0, False,
+            )
     return counts
 
 
 def _fill_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
                theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind,
                offsets, cells, t_enter, t_exit):
-    for row in prange(origins.shape[0]):
-        trace_ray(
-            origins[row, 0], origins[row, 1], origins[row, 2],
-            directions[row, 0], directions[row, 1], directions[row, 2],
-            rho_edges, rho_sq, rho_kind,
-            theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
-            phi_edges, phi_tan2, phi_nappe, phi_kind,
-            cells, t_enter, t_exit, offsets[row], True,
-        )
+    n_rays = origins.shape[0]
+    size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
+    for block in prange((n_rays + BLOCK - 1) // BLOCK):
+        times = np.empty((3, size), dtype=np.float64)
+        zones = np.empty((3, size), dtype=np.int64)
+        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            trace_ray(
+                origins[row, 0], origins[row, 1], origins[row, 2],
+                directions[row, 0], directions[row, 1], directions[row, 2],
+                rho_edges, rho_sq, rho_kind,
+                theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
+                phi_edges, phi_tan2, phi_nappe, phi_kind,
+                times, zones, cells, t_enter, t_exit, offsets[row], True,
+            )
 
 
 # The same source compiled twice: ``prange`` is a plain ``range`` without
 # ``parallel=True``, so serial and parallel runs execute identical per-ray code
 # and write each ray's segments into its own slice [offsets[r], offsets[r+1]).
-count_rows = jit(_count_rows)
-fill_rows = jit(_fill_rows)
-count_rows_parallel = jit(_count_rows, parallel=True)
-fill_rows_parallel = jit(_fill_rows, parallel=True)
+count_rows, count_rows_parallel = jit_serial_and_parallel(_count_rows)
+fill_rows, fill_rows_parallel = jit_serial_and_parallel(_fill_rows)

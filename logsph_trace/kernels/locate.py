@@ -12,6 +12,8 @@ running along the +y axis (phi == pi/2 everywhere) is inside when
 ``phi_max == pi/2``.
 """
 
+import math
+
 import numpy as np
 
 from .._jit import jit
@@ -73,8 +75,13 @@ def elevation(x, y, z):
 
 @jit
 def wrap_theta(theta, theta_min):
-    """Wrap an azimuth into [theta_min, theta_min + 2*pi)."""
-    offset = (theta - theta_min) % TWO_PI
+    """Wrap an azimuth into [theta_min, theta_min + 2*pi).
+
+    ``floor`` rather than ``%``: the float modulo is a slow libm call and this
+    runs for every ray.
+    """
+    offset = theta - theta_min
+    offset -= TWO_PI * math.floor(offset / TWO_PI)
     if offset >= TWO_PI or offset < 0.0:
         offset = 0.0
     return theta_min + offset
