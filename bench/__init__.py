@@ -1,0 +1,1 @@
+"""Benchmarks: ``python -m bench.run`` (table + JSON) and ``pytest bench/`` (pytest-benchmark)."""

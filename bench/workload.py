@@ -1,0 +1,34 @@
+"""The benchmark workload, shared by the script and the pytest-benchmark suite.
+
+A BVM-like log-spherical grid (rho 0.1..10 m, full circle, full elevation) and
+rays whose origins are uniform in its ball and whose directions are uniform on
+the sphere: a person standing anywhere in the robot's map, looking anywhere.
+The Amanatides-Woo reference traces the same rays through the cube of equal
+voxel count that holds the ball.
+"""
+
+import numpy as np
+
+import logsph_trace as lt
+from logsph_trace.cartesian import CartesianGrid
+
+RHO_MIN = 0.1
+RHO_MAX = 10.0
+
+
+def make_grid(cells=128):
+    return lt.Grid(RHO_MIN, RHO_MAX, cells, cells, cells, spacing="log")
+
+
+def make_box(cells=128):
+    return CartesianGrid((-RHO_MAX,) * 3, (RHO_MAX,) * 3, (cells,) * 3)
+
+
+def make_rays(n_rays=100_000, seed=0):
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(n_rays, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    radial = rng.normal(size=(n_rays, 3))
+    radial /= np.linalg.norm(radial, axis=1)[:, None]
+    origins = radial * RHO_MAX * rng.random(n_rays)[:, None] ** (1 / 3)
+    return origins, directions
