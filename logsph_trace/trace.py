@@ -156,15 +156,20 @@ def _rays(origins, directions):
 
 def run_csr(count, fill, origins, directions, args):
     """Count pass, prefix sum, fill pass: every ray writes its own slice, so the
-    result does not depend on the thread count or the order rays finish in."""
-    counts = count(origins, directions, *args)
+    result does not depend on the thread count or the order rays finish in.
+
+    ``count`` returns the segments per ray and, optionally (as a tuple), extra
+    per-ray arrays the fill pass takes before the offsets.
+    """
+    counted = count(origins, directions, *args)
+    counts, carried = (counted[0], counted[1:]) if isinstance(counted, tuple) else (counted, ())
     offsets = np.zeros(origins.shape[0] + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
     total = int(offsets[-1])
     cells = np.empty((total, 3), dtype=np.int32)
     t_enter = np.empty(total, dtype=np.float64)
     t_exit = np.empty(total, dtype=np.float64)
-    fill(origins, directions, *args, offsets, cells, t_enter, t_exit)
+    fill(origins, directions, *args, *carried, offsets, cells, t_enter, t_exit)
     return Traces(offsets, cells, t_enter, t_exit)
 
 

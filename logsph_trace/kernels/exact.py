@@ -131,13 +131,16 @@ def trace_ray(
     rho_edges, rho_sq, rho_kind,
     theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
     phi_edges, phi_tan2, phi_nappe, phi_kind,
-    times, zones, cells, t_enter, t_exit, start, write,
+    times, zones, lookups, cells, t_enter, t_exit, start, write,
 ):
     """Trace one ray (unit direction) and return its number of segments.
 
     ``times`` and ``zones`` are scratch of shape (3, scratch_size(...)). With
     ``write`` the segments go to ``cells[start:]``, ``t_enter[start:]``,
     ``t_exit[start:]``; without it nothing is written (the count pass).
+    ``lookups`` (8 ints) carries the ray's zone lookups -- the atan2 and log
+    calls that are most of the set-up -- from the count pass, which stores
+    them, to the fill pass, which reads them back instead of recomputing.
 
     Three phases: (1) per family, the zone at each branch end and so the number
     of crossings; (2) per family, the crossing times in order -- independent
@@ -163,9 +166,17 @@ def trace_ray(
     cross_y = oz * dx - ox * dz
     cross_z = ox * dy - oy * dx
     h2 = cross_x * cross_x + cross_y * cross_y + cross_z * cross_z
-    ir = rho_zone(ox, oy, oz, rho_edges, rho_kind)
+    if write:
+        ir = lookups[0]
+    else:
+        ir = rho_zone(ox, oy, oz, rho_edges, rho_kind)
+        lookups[0] = ir
     if t_closest > 0.0:
-        ir_turn = min(locate(np.sqrt(h2), rho_edges, rho_kind), ir)
+        if write:
+            ir_turn = lookups[1]
+        else:
+            ir_turn = min(locate(np.sqrt(h2), rho_edges, rho_kind), ir)
+            lookups[1] = ir_turn
         rho_steps_in = ir - ir_turn
         rho_steps_out = n_rho - ir_turn
     else:
@@ -195,13 +206,21 @@ def trace_ray(
     n_zones_theta = n_theta if theta_full else n_theta + 1
     sweep_sign = oz * dx - ox * dz
     n_t = 0
+    if write:
+        jt_origin = lookups[2]
+        jt_limit = lookups[3]
+    else:
+        jt_origin = theta_zone(ox, oz, theta_edges, theta_kind)
+        jt_limit = theta_zone(dx, dz, theta_edges, theta_kind)
+        lookups[2] = jt_origin
+        lookups[3] = jt_limit
     if dx == 0.0 and dz == 0.0:  # not b2 == 0: b2 underflows for |d_x|, |d_z| < 1e-154
-        jt = theta_zone(ox, oz, theta_edges, theta_kind)
+        jt = jt_origin
     elif sweep_sign == 0.0:
-        jt_after = theta_zone(dx, dz, theta_edges, theta_kind)
+        jt_after = jt_limit
         t_axis = -ab / b2
         if t_axis > 0.0:
-            jt = theta_zone(ox, oz, theta_edges, theta_kind)
+            jt = jt_origin
             if jt != jt_after and t_axis <= t_final:
                 times[THETA, 1] = t_axis
                 zones[THETA, 1] = jt_after
@@ -210,10 +229,11 @@ def trace_ray(
             jt = jt_after
     else:
         th_sigma = 1 if sweep_sign > 0.0 else -1
-        jt = theta_zone(ox, oz, theta_edges, theta_kind)
-        jt_end = theta_zone(dx, dz, theta_edges, theta_kind)
-        th_steps = ((jt_end - jt) * th_sigma) % n_zones_theta
-        if th_steps == 0:
+        jt = jt_origin
+        th_steps = ((jt_limit - jt) * th_sigma) % n_zones_theta
+        if th_steps == 0 and write:
+            th_steps = lookups[4]
+        elif th_steps == 0:
             # A zone wider than half a turn: the sweep (< pi) may still leave it
             # and come round into it again; compare the sweep with the gap.
             theta_start = azimuth(ox, oz)
@@ -223,6 +243,7 @@ def trace_ray(
             gap = ((theta_edges[edge] - theta_start) * th_sigma) % TWO_PI
             if gap < sweep:
                 th_steps = n_zones_theta
+            lookups[4] = th_steps
         zone = jt
         t_prev = 0.0
         for _ in range(th_steps):
@@ -245,7 +266,14 @@ def trace_ray(
     # or piecewise constant with a jump at the origin.
     slope = dy * ab - oy * b2
     offset = dy * a2 - oy * ab
-    kp_limit = phi_zone(dx, dy, dz, phi_edges, phi_kind)
+    if write:
+        kp_limit = lookups[5]
+        kp_origin = lookups[6]
+    else:
+        kp_limit = phi_zone(dx, dy, dz, phi_edges, phi_kind)
+        kp_origin = phi_zone(ox, oy, oz, phi_edges, phi_kind)
+        lookups[5] = kp_limit
+        lookups[6] = kp_origin
     t_turn = inf  # end of the first branch
     ph1_steps = 0
     ph2_start = -1
@@ -256,16 +284,22 @@ def trace_ray(
         if ox == 0.0 and oy == 0.0 and oz == 0.0:
             kp = kp_limit
         else:
-            kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
+            kp = kp_origin
             if t_closest > 0.0 and h2 == 0.0 and kp != kp_limit:
                 t_turn = t_closest
                 ph2_start = kp_limit
     else:
-        kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
+        kp = kp_origin
         turn = -offset / slope if slope != 0.0 else inf
         if 0.0 < turn < inf:
             t_turn = turn
-            ph2_start = phi_zone(ox + turn * dx, oy + turn * dy, oz + turn * dz, phi_edges, phi_kind)
+            if write:
+                ph2_start = lookups[7]
+            else:
+                ph2_start = phi_zone(
+                    ox + turn * dx, oy + turn * dy, oz + turn * dz, phi_edges, phi_kind
+                )
+                lookups[7] = ph2_start
             ph1_steps = abs(ph2_start - kp)
             ph2_steps = abs(kp_limit - ph2_start)
         else:
@@ -403,8 +437,10 @@ BLOCK = 256
 
 def _count_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
                 theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind):
+    """Count pass: segments per ray, and each ray's zone lookups for the fill pass."""
     n_rays = origins.shape[0]
     counts = np.empty(n_rays, dtype=np.int64)
+    lookups = np.empty((n_rays, 8), dtype=np.int64)
     size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
     no_cells = np.empty((0, 3), dtype=np.int32)
     no_times = np.empty(0, dtype=np.float64)
@@ -418,27 +454,30 @@ def _count_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, t
                 rho_edges, rho_sq, rho_kind,
                 theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
                 phi_edges, phi_tan2, phi_nappe, phi_kind,
-                times, zones, no_cells, no_times, no_times, 0, False,
+                times, zones, lookups[row], no_cells, no_times, no_times, 0, False,
             )
-    return counts
+    return counts, lookups
 
 
 def _fill_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
                theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind,
-               offsets, cells, t_enter, t_exit):
+               lookups, offsets, cells, t_enter, t_exit):
+    """Fill pass: each ray writes its segments to [offsets[r], offsets[r+1])."""
     n_rays = origins.shape[0]
     size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            if offsets[row + 1] == offsets[row]:
+                continue  # misses the region: nothing to write
             trace_ray(
                 origins[row, 0], origins[row, 1], origins[row, 2],
                 directions[row, 0], directions[row, 1], directions[row, 2],
                 rho_edges, rho_sq, rho_kind,
                 theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
                 phi_edges, phi_tan2, phi_nappe, phi_kind,
-                times, zones, cells, t_enter, t_exit, offsets[row], True,
+                times, zones, lookups[row], cells, t_enter, t_exit, offsets[row], True,
             )
 
 
