@@ -174,11 +174,37 @@ def run_csr(count, fill, origins, directions, args):
 
 
 def _run_exact(grid, origins, directions, parallel):
+    """Bound pass, prefix sum, trace pass, gather.
+
+    The bound pass (set-up only, no stepping) gives each ray a slice at least
+    as long as its trace, so every ray is traced once -- not twice, as with a
+    count pass -- and the segments are then gathered into exact-size arrays.
+    """
+    args = grid.kernel_args()
     if parallel:
-        kernels = (_exact.count_rows_parallel, _exact.fill_rows_parallel)
+        bound, trace_rows, gather = (
+            _exact.bound_rows_parallel, _exact.trace_rows_parallel, _exact.gather_rows_parallel
+        )
     else:
-        kernels = (_exact.count_rows, _exact.fill_rows)
-    return run_csr(*kernels, origins, directions, grid.kernel_args())
+        bound, trace_rows, gather = _exact.bound_rows, _exact.trace_rows, _exact.gather_rows
+    bounds, lookups = bound(origins, directions, *args)
+    bound_offsets = np.zeros(origins.shape[0] + 1, dtype=np.int64)
+    np.cumsum(bounds, out=bound_offsets[1:])
+    capacity = int(bound_offsets[-1])
+    loose = (
+        np.empty((capacity, 3), dtype=np.int32),
+        np.empty(capacity, dtype=np.float64),
+        np.empty(capacity, dtype=np.float64),
+    )
+    counts = trace_rows(origins, directions, *args, lookups, bound_offsets, *loose)
+    offsets = np.zeros(origins.shape[0] + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    total = int(offsets[-1])
+    cells = np.empty((total, 3), dtype=np.int32)
+    t_enter = np.empty(total, dtype=np.float64)
+    t_exit = np.empty(total, dtype=np.float64)
+    gather(bound_offsets, offsets, *loose, cells, t_enter, t_exit)
+    return Traces(offsets, cells, t_enter, t_exit)
 
 
 def trace_many(grid, origins, directions=None, method="exact", parallel=True):
@@ -196,8 +222,10 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True):
         ``"exact"``: boundary stepping (every cell, exact entry/exit distances).
     parallel : bool
         Trace rays on all Numba threads (``prange``). The output is identical
-        to the serial run: a count pass sizes each ray's slice, a fill pass
-        writes it.
+        to the serial run: a bound pass sizes a slice for each ray, the trace
+        pass writes each ray into its own slice, and a gather pass packs the
+        slices. While it runs, memory peaks at about 2.5 times the output,
+        because the bounded slices hold about 1.5 times the final segments.
 
     Returns
     -------

@@ -125,25 +125,31 @@ def scratch_size(n_rho, n_theta, n_phi):
     return max(2 * (n_rho + 1), n_theta + 2, 2 * (n_phi + 1) + 1) + 2
 
 
+# What a call of trace_ray does (see its docstring).
+BOUND = 0
+TRACE = 1
+
+
 @jit
 def trace_ray(
     ox, oy, oz, dx, dy, dz,
     rho_edges, rho_sq, rho_kind,
     theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
     phi_edges, phi_tan2, phi_nappe, phi_kind,
-    times, zones, lookups, cells, t_enter, t_exit, start, write,
+    times, zones, lookups, cells, t_enter, t_exit, start, mode,
 ):
-    """Trace one ray (unit direction) and return its number of segments.
+    """Trace one ray (unit direction).
 
-    ``times`` and ``zones`` are scratch of shape (3, scratch_size(...)). With
-    ``write`` the segments go to ``cells[start:]``, ``t_enter[start:]``,
-    ``t_exit[start:]``; without it nothing is written (the count pass).
-    ``lookups`` (8 ints) carries the ray's zone lookups -- the atan2 and log
-    calls that are most of the set-up -- from the count pass, which stores
-    them, to the fill pass, which reads them back instead of recomputing.
+    ``mode == BOUND``: run phase 1 only, store the ray's zone lookups (the
+    atan2 and log calls that are most of the set-up) in ``lookups`` (8 ints) and
+    return an upper bound on its number of segments: the number of crossings,
+    since each merge step emits at most one segment.
+    ``mode == TRACE``: read the lookups back, run all phases, write the segments
+    to ``cells[start:]``, ``t_enter[start:]``, ``t_exit[start:]`` and return their
+    number. ``times`` and ``zones`` are scratch of shape (3, scratch_size(...)).
 
-    Three phases: (1) per family, the zone at each branch end and so the number
-    of crossings; (2) per family, the crossing times in order -- independent
+    Phases: (1) per family, the zone at each branch end and so the number of
+    crossings; (2) per family, the crossing times in order -- independent
     square roots and divisions the CPU can overlap; (3) a three-way merge of
     the sorted lists, emitting a segment whenever the ray is inside.
     """
@@ -151,6 +157,7 @@ def trace_ray(
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
     inf = np.inf
+    reuse = mode == TRACE
     # Rounding of a crossing time is ~1e-14 of the scene's size; a crossing found
     # further in the past than this is one at infinity (see _clamp).
     slack = 1e-9 * (rho_edges[n_rho] + np.sqrt(ox * ox + oy * oy + oz * oz))
@@ -160,28 +167,113 @@ def trace_ray(
     a2 = ox * ox + oz * oz
     b2 = dx * dx + dz * dz
 
-    # ---- rho: falls until the closest approach t_c, then rises (Eq. 9a).
+    # ---- phase 1, rho: falls until the closest approach t_c, then rises (Eq. 9a).
     t_closest = -(ox * dx + oy * dy + oz * dz)
     cross_x = oy * dz - oz * dy
     cross_y = oz * dx - ox * dz
     cross_z = ox * dy - oy * dx
     h2 = cross_x * cross_x + cross_y * cross_y + cross_z * cross_z
-    if write:
+    if reuse:
         ir = lookups[0]
+        ir_turn = lookups[1]
     else:
         ir = rho_zone(ox, oy, oz, rho_edges, rho_kind)
-        lookups[0] = ir
-    if t_closest > 0.0:
-        if write:
-            ir_turn = lookups[1]
-        else:
+        ir_turn = ir
+        if t_closest > 0.0:
             ir_turn = min(locate(np.sqrt(h2), rho_edges, rho_kind), ir)
-            lookups[1] = ir_turn
-        rho_steps_in = ir - ir_turn
-        rho_steps_out = n_rho - ir_turn
+        lookups[0] = ir
+        lookups[1] = ir_turn
+    rho_steps_in = ir - ir_turn
+    rho_steps_out = n_rho - ir_turn
+    if rho_steps_out == 0:
+        return 0  # beyond rho_max and moving away: never inside
+
+    # ---- phase 1, theta: one monotone sweep, or a jump where the line meets the y axis.
+    if reuse:
+        jt = lookups[2]
+        jt_limit = lookups[3]
     else:
-        rho_steps_in = 0
-        rho_steps_out = n_rho - ir
+        jt = theta_zone(ox, oz, theta_edges, theta_kind)
+        jt_limit = theta_zone(dx, dz, theta_edges, theta_kind)
+        lookups[2] = jt
+        lookups[3] = jt_limit
+    n_zones_theta = n_theta if theta_full else n_theta + 1
+    sweep_sign = oz * dx - ox * dz
+    th_sigma = 0
+    th_steps = 0
+    t_axis = inf  # where the line meets the y axis, when theta jumps there
+    if dx == 0.0 and dz == 0.0:  # not b2 == 0: b2 underflows for |d_x|, |d_z| < 1e-154
+        pass  # parallel to the y axis: theta never changes
+    elif sweep_sign == 0.0:
+        if -ab / b2 > 0.0:
+            if jt != jt_limit:
+                t_axis = -ab / b2
+        else:
+            jt = jt_limit
+    else:
+        th_sigma = 1 if sweep_sign > 0.0 else -1
+        th_steps = ((jt_limit - jt) * th_sigma) % n_zones_theta
+        if th_steps == 0 and reuse:
+            th_steps = lookups[4]
+        elif th_steps == 0:
+            # A zone wider than half a turn: the sweep (< pi) may still leave it
+            # and come round into it again; compare the sweep with the gap.
+            theta_start = azimuth(ox, oz)
+            theta_limit = azimuth(dx, dz)
+            edge = _theta_edge_ahead(jt, th_sigma, n_theta)
+            sweep = ((theta_limit - theta_start) * th_sigma) % TWO_PI
+            gap = ((theta_edges[edge] - theta_start) * th_sigma) % TWO_PI
+            if gap < sweep:
+                th_steps = n_zones_theta
+            lookups[4] = th_steps
+
+    # ---- phase 1, phi: up to two monotone branches split at the turning point
+    # -q/p, or piecewise constant with a jump at the origin.
+    if reuse:
+        kp_limit = lookups[5]
+        kp = lookups[6]
+    else:
+        kp_limit = phi_zone(dx, dy, dz, phi_edges, phi_kind)
+        kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
+        lookups[5] = kp_limit
+        lookups[6] = kp
+    slope = dy * ab - oy * b2
+    offset = dy * a2 - oy * ab
+    t_turn = inf  # end of the first branch
+    ph1_steps = 0
+    ph2_start = kp  # zone at the start of the second branch
+    ph2_steps = 0
+    # h2 == 0 (the line meets the origin) is tested on the cross product, which
+    # is exactly 0 for collinear o and d where ``slope`` may round to 1e-16.
+    if h2 == 0.0 or (slope == 0.0 and offset == 0.0):
+        if ox == 0.0 and oy == 0.0 and oz == 0.0:
+            kp = kp_limit
+            ph2_start = kp_limit
+        elif t_closest > 0.0 and h2 == 0.0 and kp != kp_limit:
+            t_turn = t_closest
+            ph2_start = kp_limit
+    else:
+        turn = -offset / slope if slope != 0.0 else inf
+        if 0.0 < turn < inf:
+            t_turn = turn
+            if reuse:
+                ph2_start = lookups[7]
+            else:
+                ph2_start = phi_zone(
+                    ox + turn * dx, oy + turn * dy, oz + turn * dz, phi_edges, phi_kind
+                )
+                lookups[7] = ph2_start
+            ph1_steps = abs(ph2_start - kp)
+        ph2_steps = abs(kp_limit - ph2_start)
+    # Only through the origin does the first branch end in another zone than
+    # the second starts in: phi jumps between opposite directions there.
+    ph_jump = 1 if ph1_steps == 0 and ph2_start != kp else 0
+
+    if mode == BOUND:
+        jumps = (1 if t_axis < inf else 0) + ph_jump
+        return rho_steps_in + rho_steps_out + th_steps + ph1_steps + ph2_steps + jumps
+
+    # ---- phase 2: each family's crossing times, in order, up to the final exit.
     n_r = 0
     zone = ir
     t_prev = 0.0
@@ -197,114 +289,32 @@ def trace_ray(
         times[RHO, n_r + 1] = t_prev
         zones[RHO, n_r + 1] = zone
         n_r += 1
-    if n_r == 0:
-        return 0  # beyond rho_max and moving away: never inside
     # The last rho crossing leaves rho_max for good: nothing after it matters.
     t_final = times[RHO, n_r]
 
-    # ---- theta: one monotone sweep, or a jump where the line meets the y axis.
-    n_zones_theta = n_theta if theta_full else n_theta + 1
-    sweep_sign = oz * dx - ox * dz
     n_t = 0
-    if write:
-        jt_origin = lookups[2]
-        jt_limit = lookups[3]
-    else:
-        jt_origin = theta_zone(ox, oz, theta_edges, theta_kind)
-        jt_limit = theta_zone(dx, dz, theta_edges, theta_kind)
-        lookups[2] = jt_origin
-        lookups[3] = jt_limit
-    if dx == 0.0 and dz == 0.0:  # not b2 == 0: b2 underflows for |d_x|, |d_z| < 1e-154
-        jt = jt_origin
-    elif sweep_sign == 0.0:
-        jt_after = jt_limit
-        t_axis = -ab / b2
-        if t_axis > 0.0:
-            jt = jt_origin
-            if jt != jt_after and t_axis <= t_final:
-                times[THETA, 1] = t_axis
-                zones[THETA, 1] = jt_after
-                n_t = 1
-        else:
-            jt = jt_after
-    else:
-        th_sigma = 1 if sweep_sign > 0.0 else -1
-        jt = jt_origin
-        th_steps = ((jt_limit - jt) * th_sigma) % n_zones_theta
-        if th_steps == 0 and write:
-            th_steps = lookups[4]
-        elif th_steps == 0:
-            # A zone wider than half a turn: the sweep (< pi) may still leave it
-            # and come round into it again; compare the sweep with the gap.
-            theta_start = azimuth(ox, oz)
-            theta_limit = azimuth(dx, dz)
-            edge = _theta_edge_ahead(jt, th_sigma, n_theta)
-            sweep = ((theta_limit - theta_start) * th_sigma) % TWO_PI
-            gap = ((theta_edges[edge] - theta_start) * th_sigma) % TWO_PI
-            if gap < sweep:
-                th_steps = n_zones_theta
-            lookups[4] = th_steps
-        zone = jt
-        t_prev = 0.0
-        for _ in range(th_steps):
-            edge = _theta_edge_ahead(zone, th_sigma, n_theta)
-            t_prev = _clamp(
-                _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), t_prev, inf, slack
-            )
-            if t_prev > t_final:
-                break
-            zone += th_sigma
-            if zone == n_zones_theta:
-                zone = 0
-            elif zone < 0:
-                zone = n_zones_theta - 1
-            times[THETA, n_t + 1] = t_prev
-            zones[THETA, n_t + 1] = zone
-            n_t += 1
+    if t_axis <= t_final:
+        times[THETA, 1] = t_axis
+        zones[THETA, 1] = jt_limit
+        n_t = 1
+    zone = jt
+    t_prev = 0.0
+    for _ in range(th_steps):
+        edge = _theta_edge_ahead(zone, th_sigma, n_theta)
+        t_prev = _clamp(
+            _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), t_prev, inf, slack
+        )
+        if t_prev > t_final:
+            break
+        zone += th_sigma
+        if zone == n_zones_theta:
+            zone = 0
+        elif zone < 0:
+            zone = n_zones_theta - 1
+        times[THETA, n_t + 1] = t_prev
+        zones[THETA, n_t + 1] = zone
+        n_t += 1
 
-    # ---- phi: up to two monotone branches split at the turning point -q/p,
-    # or piecewise constant with a jump at the origin.
-    slope = dy * ab - oy * b2
-    offset = dy * a2 - oy * ab
-    if write:
-        kp_limit = lookups[5]
-        kp_origin = lookups[6]
-    else:
-        kp_limit = phi_zone(dx, dy, dz, phi_edges, phi_kind)
-        kp_origin = phi_zone(ox, oy, oz, phi_edges, phi_kind)
-        lookups[5] = kp_limit
-        lookups[6] = kp_origin
-    t_turn = inf  # end of the first branch
-    ph1_steps = 0
-    ph2_start = -1
-    ph2_steps = 0
-    # h2 == 0 (the line meets the origin) is tested on the cross product, which
-    # is exactly 0 for collinear o and d where ``slope`` may round to 1e-16.
-    if h2 == 0.0 or (slope == 0.0 and offset == 0.0):
-        if ox == 0.0 and oy == 0.0 and oz == 0.0:
-            kp = kp_limit
-        else:
-            kp = kp_origin
-            if t_closest > 0.0 and h2 == 0.0 and kp != kp_limit:
-                t_turn = t_closest
-                ph2_start = kp_limit
-    else:
-        kp = kp_origin
-        turn = -offset / slope if slope != 0.0 else inf
-        if 0.0 < turn < inf:
-            t_turn = turn
-            if write:
-                ph2_start = lookups[7]
-            else:
-                ph2_start = phi_zone(
-                    ox + turn * dx, oy + turn * dy, oz + turn * dz, phi_edges, phi_kind
-                )
-                lookups[7] = ph2_start
-            ph1_steps = abs(ph2_start - kp)
-            ph2_steps = abs(kp_limit - ph2_start)
-        else:
-            ph2_start = kp
-            ph2_steps = abs(kp_limit - kp)
     n_p = 0
     zone = kp
     t_prev = 0.0
@@ -323,8 +333,7 @@ def trace_ray(
         times[PHI, n_p + 1] = t_prev
         zones[PHI, n_p + 1] = zone
         n_p += 1
-    if not done and zone != ph2_start:
-        # Only through the origin: phi jumps between opposite directions.
+    if ph_jump == 1:
         t_prev = _clamp(t_turn, t_prev, inf, slack)
         if t_prev > t_final:
             done = True
@@ -351,7 +360,7 @@ def trace_ray(
             zones[PHI, n_p + 1] = zone
             n_p += 1
 
-    # ---- merge the three sorted lists; emit while inside.
+    # ---- phase 3: merge the three sorted lists; emit while inside.
     # Crossings that coincide (a corner where a sphere, a half-plane and a cone
     # meet) come out a few ulps apart; the slivers between them (shorter than
     # ``snap``) are cells the ray only touches. They are absorbed into the next
@@ -403,15 +412,13 @@ def trace_ray(
                 if touching and ir == last_i and jt == last_j and kp == last_k:
                     # The same cell on both sides of a sliver or a zero-length detour
                     # (tangency, the seam of a one-sector circle): extend, don't repeat.
-                    if write:
-                        t_exit[start + count - 1] = t_next
+                    t_exit[start + count - 1] = t_next
                 else:
-                    if write:
-                        cells[start + count, 0] = ir
-                        cells[start + count, 1] = jt
-                        cells[start + count, 2] = kp
-                        t_enter[start + count] = t_from
-                        t_exit[start + count] = t_next
+                    cells[start + count, 0] = ir
+                    cells[start + count, 1] = jt
+                    cells[start + count, 2] = kp
+                    t_enter[start + count] = t_from
+                    t_exit[start + count] = t_next
                     count += 1
                     last_i = ir
                     last_j = jt
@@ -435,54 +442,69 @@ def trace_ray(
 BLOCK = 256
 
 
-def _count_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
+def _bound_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
                 theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind):
-    """Count pass: segments per ray, and each ray's zone lookups for the fill pass."""
+    """Pass 1: an upper bound on each ray's segments, and its zone lookups for pass 2."""
     n_rays = origins.shape[0]
-    counts = np.empty(n_rays, dtype=np.int64)
+    bounds = np.empty(n_rays, dtype=np.int64)
     lookups = np.empty((n_rays, 8), dtype=np.int64)
-    size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
+    no_times = np.empty((3, 0), dtype=np.float64)
+    no_zones = np.empty((3, 0), dtype=np.int64)
     no_cells = np.empty((0, 3), dtype=np.int32)
-    no_times = np.empty(0, dtype=np.float64)
+    no_t = np.empty(0, dtype=np.float64)
+    for row in prange(n_rays):
+        bounds[row] = trace_ray(
+            origins[row, 0], origins[row, 1], origins[row, 2],
+            directions[row, 0], directions[row, 1], directions[row, 2],
+            rho_edges, rho_sq, rho_kind,
+            theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
+            phi_edges, phi_tan2, phi_nappe, phi_kind,
+            no_times, no_zones, lookups[row], no_cells, no_t, no_t, 0, BOUND,
+        )
+    return bounds, lookups
+
+
+def _trace_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
+                theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind,
+                lookups, bound_offsets, cells, t_enter, t_exit):
+    """Pass 2: each ray writes its segments from bound_offsets[r] on; returns the counts."""
+    n_rays = origins.shape[0]
+    counts = np.zeros(n_rays, dtype=np.int64)
+    size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            if bound_offsets[row + 1] == bound_offsets[row]:
+                continue  # misses the region
             counts[row] = trace_ray(
                 origins[row, 0], origins[row, 1], origins[row, 2],
                 directions[row, 0], directions[row, 1], directions[row, 2],
                 rho_edges, rho_sq, rho_kind,
                 theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
                 phi_edges, phi_tan2, phi_nappe, phi_kind,
-                times, zones, lookups[row], no_cells, no_times, no_times, 0, False,
+                times, zones, lookups[row], cells, t_enter, t_exit, bound_offsets[row], TRACE,
             )
-    return counts, lookups
+    return counts
 
 
-def _fill_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
-               theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind,
-               lookups, offsets, cells, t_enter, t_exit):
-    """Fill pass: each ray writes its segments to [offsets[r], offsets[r+1])."""
-    n_rays = origins.shape[0]
-    size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
-    for block in prange((n_rays + BLOCK - 1) // BLOCK):
-        times = np.empty((3, size), dtype=np.float64)
-        zones = np.empty((3, size), dtype=np.int64)
-        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            if offsets[row + 1] == offsets[row]:
-                continue  # misses the region: nothing to write
-            trace_ray(
-                origins[row, 0], origins[row, 1], origins[row, 2],
-                directions[row, 0], directions[row, 1], directions[row, 2],
-                rho_edges, rho_sq, rho_kind,
-                theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
-                phi_edges, phi_tan2, phi_nappe, phi_kind,
-                times, zones, lookups[row], cells, t_enter, t_exit, offsets[row], True,
-            )
+def _gather_rows(bound_offsets, offsets, loose_cells, loose_enter, loose_exit,
+                 cells, t_enter, t_exit):
+    """Pass 3: copy each ray's segments from its bound slice to its final slice."""
+    for row in prange(offsets.shape[0] - 1):
+        source = bound_offsets[row]
+        target = offsets[row]
+        for seg in range(offsets[row + 1] - target):
+            cells[target + seg, 0] = loose_cells[source + seg, 0]
+            cells[target + seg, 1] = loose_cells[source + seg, 1]
+            cells[target + seg, 2] = loose_cells[source + seg, 2]
+            t_enter[target + seg] = loose_enter[source + seg]
+            t_exit[target + seg] = loose_exit[source + seg]
 
 
 # The same source compiled twice: ``prange`` is a plain ``range`` without
 # ``parallel=True``, so serial and parallel runs execute identical per-ray code
-# and write each ray's segments into its own slice [offsets[r], offsets[r+1]).
-count_rows, count_rows_parallel = jit_serial_and_parallel(_count_rows)
-fill_rows, fill_rows_parallel = jit_serial_and_parallel(_fill_rows)
+# and each ray writes only its own slice: the output does not depend on threads.
+bound_rows, bound_rows_parallel = jit_serial_and_parallel(_bound_rows)
+trace_rows, trace_rows_parallel = jit_serial_and_parallel(_trace_rows)
+gather_rows, gather_rows_parallel = jit_serial_and_parallel(_gather_rows)
