@@ -5,9 +5,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from .grid import Grid
+from .kernels import bisect as _bisect
 from .kernels import exact as _exact
+from .kernels import thibaudeau as _thibaudeau
 
-METHODS = ("exact",)
+METHODS = ("exact", "bisect", "thibaudeau")
+PAPER_DEFAULT_T = 1.5531  # metres: the step the paper tuned for Algorithm 1 (section 3.2)
 
 
 @dataclass(frozen=True)
@@ -207,7 +210,23 @@ def _run_exact(grid, origins, directions, parallel):
     return Traces(offsets, cells, t_enter, t_exit)
 
 
-def trace_many(grid, origins, directions=None, method="exact", parallel=True):
+def _bisect_options(grid, default_t, max_iter):
+    try:
+        default_t = float(default_t)
+    except (TypeError, ValueError):
+        raise ValueError(f"default_t must be a positive number, got {default_t!r}") from None
+    if not (np.isfinite(default_t) and default_t > 0):
+        raise ValueError(f"default_t must be a positive finite number, got {default_t!r}")
+    if max_iter is None:
+        n_rho, n_theta, n_phi = grid.shape
+        max_iter = 64 * (2 * n_rho + n_theta + 2 * n_phi + 4)
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
+    return default_t, int(max_iter)
+
+
+def trace_many(grid, origins, directions=None, method="exact", parallel=True,
+               default_t=PAPER_DEFAULT_T, max_iter=None):
     """Trace many rays through ``grid``.
 
     Parameters
@@ -218,14 +237,24 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True):
     directions : array_like, shape (m, 3), optional
         Ray directions, any non-zero length; they are normalised, so every
         ``t`` returned is a distance from the origin.
-    method : {"exact"}
-        ``"exact"``: boundary stepping (every cell, exact entry/exit distances).
+    method : {"exact", "bisect", "thibaudeau"}
+        ``"exact"`` (default): boundary stepping -- every cell, exact entry and
+        exit distances. ``"bisect"``: the paper's Algorithm 1, a baseline that
+        may skip cells and stops at the first exit; its distances are sample
+        positions, not boundaries. ``"thibaudeau"``: all crossings with all
+        boundaries, sorted and classified -- exact but O(n log n).
     parallel : bool
         Trace rays on all Numba threads (``prange``). The output is identical
-        to the serial run: a bound pass sizes a slice for each ray, the trace
-        pass writes each ray into its own slice, and a gather pass packs the
-        slices. While it runs, memory peaks at about 2.5 times the output,
-        because the bounded slices hold about 1.5 times the final segments.
+        to the serial run. For ``"exact"``, a bound pass sizes a slice for each
+        ray, the trace pass writes each ray into its own slice, and a gather
+        pass packs the slices; while it runs, memory peaks at about 2.5 times
+        the output. The baselines use a count pass and a fill pass.
+    default_t : float
+        ``"bisect"`` only: the first step of every search, in length units
+        (paper: 1.5531 m).
+    max_iter : int, optional
+        ``"bisect"`` only: samples allowed per ray, so a ray grazing a boundary
+        cannot loop forever. Default ``64 * (2 n_rho + n_theta + 2 n_phi + 4)``.
 
     Returns
     -------
@@ -236,22 +265,40 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True):
     ------
     ValueError
         Wrong shapes, NaN or infinite values, zero directions, unknown method,
-        or ``grid`` not a :class:`Grid` -- before any kernel runs.
+        bad ``default_t`` or ``max_iter``, or ``grid`` not a :class:`Grid` --
+        before any kernel runs.
     """
     _check_grid(grid)
     _check_method(method)
+    if method == "bisect":
+        default_t, max_iter = _bisect_options(grid, default_t, max_iter)
     origins, directions = _rays(origins, directions)
-    return _run_exact(grid, origins, directions, bool(parallel))
+    parallel = bool(parallel)
+    if method == "exact":
+        return _run_exact(grid, origins, directions, parallel)
+    kinds = (grid.rho_edges, grid.rho_kind, grid.theta_edges, grid.theta_kind)
+    if method == "bisect":
+        args = kinds + (grid.theta_full, grid.phi_edges, grid.phi_kind, default_t, max_iter)
+        module, name = _bisect, "bisect"
+    else:
+        args = kinds + (grid.phi_edges, grid.phi_kind)
+        module, name = _thibaudeau, "thibaudeau"
+    suffix = "_rows_parallel" if parallel else "_rows"
+    count = getattr(module, f"count_{name}{suffix}")
+    fill = getattr(module, f"fill_{name}{suffix}")
+    return run_csr(count, fill, origins, directions, args)
 
 
-def trace(grid, origin, direction, method="exact"):
+def trace(grid, origin, direction, method="exact", default_t=PAPER_DEFAULT_T, max_iter=None):
     """Trace one ray; see :func:`trace_many`.
 
     Parameters
     ----------
     grid : Grid
     origin, direction : array_like, shape (3,)
-    method : {"exact"}
+    method : {"exact", "bisect", "thibaudeau"}
+    default_t, max_iter :
+        ``"bisect"`` only, see :func:`trace_many`.
 
     Returns
     -------
@@ -260,4 +307,5 @@ def trace(grid, origin, direction, method="exact"):
     for name, value in (("origin", origin), ("direction", direction)):
         if np.shape(value) != (3,):
             raise ValueError(f"{name} must have shape (3,), got {np.shape(value)}")
-    return trace_many(grid, origin, direction, method=method, parallel=False)[0]
+    return trace_many(grid, origin, direction, method=method, parallel=False,
+                      default_t=default_t, max_iter=max_iter)[0]

@@ -25,11 +25,15 @@ SCRIPT = textwrap.dedent(
     origins = rng.uniform(-12, 12, (60, 3))
     directions = rng.normal(size=(60, 3))
     traces = lt.trace_many(grid, origins, directions, parallel=True)
+    bisect = lt.trace_many(grid, origins, directions, method="bisect", default_t=0.7)
+    thibaudeau = lt.trace_many(grid, origins, directions, method="thibaudeau")
     cart = CartesianGrid((-10.0, -10.0, -10.0), (10.0, 10.0, 10.0), (7, 8, 9))
     boxes = cart.trace_many(origins, directions)
     np.savez(sys.argv[1], offsets=traces.offsets, cells=traces.cells, t_enter=traces.t_enter,
              t_exit=traces.t_exit, box_offsets=boxes.offsets, box_cells=boxes.cells,
-             points=grid.cell_of(origins))
+             points=grid.cell_of(origins), bisect_cells=bisect.cells,
+             bisect_offsets=bisect.offsets, thibaudeau_cells=thibaudeau.cells,
+             thibaudeau_offsets=thibaudeau.offsets)
     """
 )
 
@@ -43,7 +47,8 @@ def test_kernels_run_without_jit(tmp_path):
     env.pop("NUMBA_DISABLE_JIT")
     subprocess.run([sys.executable, "-c", SCRIPT, str(jitted_out)], env=env, check=True, timeout=300)
     jitted = np.load(jitted_out)
-    for name in ("offsets", "cells", "box_offsets", "box_cells", "points"):
+    for name in ("offsets", "cells", "box_offsets", "box_cells", "points", "bisect_cells",
+                 "bisect_offsets", "thibaudeau_cells", "thibaudeau_offsets"):
         np.testing.assert_array_equal(plain[name], jitted[name], err_msg=name)
     np.testing.assert_allclose(plain["t_enter"], jitted["t_enter"], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(plain["t_exit"], jitted["t_exit"], rtol=1e-12, atol=1e-12)
