@@ -16,6 +16,7 @@ def test_trace_figure_has_four_panels_and_one_volume_per_cell():
     result = lt.trace(grid, [0, 20, 20], [-0.3, -0.01, 0])
     fig = trace_figure(grid, [0, 20, 20], [-0.3, -0.01, 0], result)
     assert len(fig.axes) == 4
+    fig.canvas.draw()  # 3-D collections get their 2-D paths when drawn
     volumes = fig.axes[3].collections[-1]
     assert len(volumes.get_paths()) == 6 * len(result.unique())  # six faces per cell
     matplotlib.pyplot.close(fig)
