@@ -5,7 +5,7 @@ and for how long? See ``Grid``, ``trace`` and ``trace_many``.
 """
 
 from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
-from .trace import METHODS, Trace, Traces, trace, trace_many
+from .api import METHODS, Trace, Traces, trace, trace_many
 
 __all__ = [
     "Grid",

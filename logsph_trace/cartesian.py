@@ -4,7 +4,7 @@ import numpy as np
 
 from .grid import _as_count, _as_finite
 from .kernels import cartesian as _kernels
-from .trace import Traces, _rays, run_csr
+from .api import Traces, _rays, run_csr
 
 
 class CartesianGrid:

@@ -141,3 +141,29 @@ def test_property_any_ray_matches_oracle(name, origin, direction):
     grid = GRIDS[name]()
     result = lt.trace(grid, origin, direction)
     assert_matches_oracle(grid, origin, direction, result, rel=TANGENT_SLIVER)
+
+
+def test_every_parallel_path_equals_the_serial_one():
+    # Chunked appending (many rays), its fallback when a chunk outgrows the room
+    # estimated from the first rays, and the bounded three-pass pipeline.
+    from logsph_trace import api as trace_module
+
+    grid = GRIDS["log_full"]()
+    rng = np.random.default_rng(41)
+    origins, directions = random_rays(rng, grid, 6000)
+    # The first rays start far outside and miss: the estimate of segments per ray is ~0.
+    origins[:256] = [0.0, 0.0, 100.0]
+    directions[:256] = [0.0, 0.0, 1.0]
+    serial = lt.trace_many(grid, origins, directions, parallel=False)
+    o, d = trace_module._rays(origins, directions)
+    args = grid.kernel_args()
+    assert trace_module._run_exact_chunks(grid, o, d, args, threads=2) is None  # overflow
+    results = [
+        lt.trace_many(grid, origins, directions, parallel=True),
+        trace_module._run_exact_chunks(grid, o[::-1].copy(), d[::-1].copy(), args, threads=3),
+        trace_module._run_exact_bounded(grid, o, d, args),
+    ]
+    reversed_serial = lt.trace_many(grid, origins[::-1], directions[::-1], parallel=False)
+    for result, want in zip(results, [serial, reversed_serial, serial]):
+        for name in ("offsets", "cells", "t_enter", "t_exit"):
+            np.testing.assert_array_equal(getattr(result, name), getattr(want, name))

@@ -128,6 +128,7 @@ def scratch_size(n_rho, n_theta, n_phi):
 # What a call of trace_ray does (see its docstring).
 BOUND = 0
 TRACE = 1
+FULL = 2
 
 
 @jit
@@ -146,7 +147,8 @@ def trace_ray(
     since each merge step emits at most one segment.
     ``mode == TRACE``: read the lookups back, run all phases, write the segments
     to ``cells[start:]``, ``t_enter[start:]``, ``t_exit[start:]`` and return their
-    number. ``times`` and ``zones`` are scratch of shape (3, scratch_size(...)).
+    number. ``mode == FULL``: the same, computing the lookups (one pass).
+    ``times`` and ``zones`` are scratch of shape (3, scratch_size(...)).
 
     Phases: (1) per family, the zone at each branch end and so the number of
     crossings; (2) per family, the crossing times in order -- independent
@@ -502,9 +504,95 @@ def _gather_rows(bound_offsets, offsets, loose_cells, loose_enter, loose_exit,
             t_exit[target + seg] = loose_exit[source + seg]
 
 
+@jit
+def max_segments(n_rho, n_theta, n_phi):
+    """Most segments one ray can have: one per crossing (see ``scratch_size``)."""
+    return 2 * (n_rho + 1) + (n_theta + 2) + 2 * (n_phi + 1) + 1
+
+
+@jit
+def trace_span(first, last, origins, directions, rho_edges, rho_sq, rho_kind, theta_edges,
+               theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe,
+               phi_kind, times, zones, lookups, cells, t_enter, t_exit, offsets, used, limit):
+    """One thread: trace rays first..last-1 in order, appending from segment ``used`` on.
+
+    Without threads a ray's final offset is known when it starts (the sum of
+    the counts before it), so no bound pass or gather is needed. Writes
+    ``offsets[row + 1]`` (absolute positions in the arrays). Stops before a ray
+    that might not fit below ``limit`` (``max_segments`` per ray); returns
+    (new ``used``, the first row not traced).
+    """
+    worst = max_segments(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
+    for row in range(first, last):
+        if limit - used < worst:
+            return used, row
+        used += trace_ray(
+            origins[row, 0], origins[row, 1], origins[row, 2],
+            directions[row, 0], directions[row, 1], directions[row, 2],
+            rho_edges, rho_sq, rho_kind,
+            theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
+            phi_edges, phi_tan2, phi_nappe, phi_kind,
+            times, zones, lookups, cells, t_enter, t_exit, used, FULL,
+        )
+        offsets[row + 1] = used
+    return used, last
+
+
+def _trace_chunks(starts, regions, origins, directions, rho_edges, rho_sq, rho_kind, theta_edges,
+                  theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe,
+                  phi_kind, cells, t_enter, t_exit, offsets):
+    """Chunk c traces rays starts[c]..starts[c+1]-1 into regions[c]..regions[c+1]-1.
+
+    Returns per chunk the end of its segments and the first row it could not
+    fit (== starts[c+1] when the whole chunk fitted).
+    """
+    n_chunks = starts.shape[0] - 1
+    size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
+    ends = np.empty(n_chunks, dtype=np.int64)
+    reached = np.empty(n_chunks, dtype=np.int64)
+    for chunk in prange(n_chunks):
+        times = np.empty((3, size), dtype=np.float64)
+        zones = np.empty((3, size), dtype=np.int64)
+        lookups = np.empty(8, dtype=np.int64)
+        ends[chunk], reached[chunk] = trace_span(
+            starts[chunk], starts[chunk + 1], origins, directions, rho_edges, rho_sq, rho_kind,
+            theta_edges, theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2,
+            phi_nappe, phi_kind, times, zones, lookups, cells, t_enter, t_exit, offsets,
+            regions[chunk], regions[chunk + 1],
+        )
+    return ends, reached
+
+
+@jit
+def pack_chunks(starts, regions, ends, offsets, cells, t_enter, t_exit):
+    """Move each chunk's segments left to follow the previous chunk's, in place.
+
+    A chunk's target never lies after its source, so copying chunks in order,
+    each front to back, never overwrites a segment before it has moved. Chunk
+    0 stays where it is. Offsets are shifted to match; returns the total.
+    """
+    total = ends[0] - regions[0]
+    for chunk in range(1, starts.shape[0] - 1):
+        source = regions[chunk]
+        length = ends[chunk] - source
+        shift = source - total
+        if shift > 0:
+            for seg in range(length):
+                cells[total + seg, 0] = cells[source + seg, 0]
+                cells[total + seg, 1] = cells[source + seg, 1]
+                cells[total + seg, 2] = cells[source + seg, 2]
+                t_enter[total + seg] = t_enter[source + seg]
+                t_exit[total + seg] = t_exit[source + seg]
+            for row in range(starts[chunk] + 1, starts[chunk + 1] + 1):
+                offsets[row] -= shift
+        total += length
+    return total
+
+
 # The same source compiled twice: ``prange`` is a plain ``range`` without
 # ``parallel=True``, so serial and parallel runs execute identical per-ray code
 # and each ray writes only its own slice: the output does not depend on threads.
 bound_rows, bound_rows_parallel = jit_serial_and_parallel(_bound_rows)
 trace_rows, trace_rows_parallel = jit_serial_and_parallel(_trace_rows)
 gather_rows, gather_rows_parallel = jit_serial_and_parallel(_gather_rows)
+_, trace_chunks = jit_serial_and_parallel(_trace_chunks)

@@ -2,6 +2,7 @@
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .grid import Grid
@@ -176,20 +177,100 @@ def run_csr(count, fill, origins, directions, args):
     return Traces(offsets, cells, t_enter, t_exit)
 
 
-def _run_exact(grid, origins, directions, parallel):
-    """Bound pass, prefix sum, trace pass, gather.
+# Rays per call of the serial kernel: the arrays grow between calls, never inside one.
+SERIAL_CHUNK = 4096
 
-    The bound pass (set-up only, no stepping) gives each ray a slice at least
-    as long as its trace, so every ray is traced once -- not twice, as with a
-    count pass -- and the segments are then gathered into exact-size arrays.
+
+def _grown(array, capacity, used):
+    bigger = np.empty((capacity,) + array.shape[1:], dtype=array.dtype)
+    bigger[:used] = array[:used]
+    return bigger
+
+
+def _run_exact_serial(grid, origins, directions, args):
+    """One appending pass. The arrays are numpy's (allocated here, not in the
+    kernel: numpy asks the OS for huge pages, which makes first touch of a large
+    output several ns per segment cheaper) and are sized for the whole batch
+    from its first rays, with a fifth to spare."""
+    n_rays = origins.shape[0]
+    worst = int(_exact.max_segments(*grid.shape))
+    size = int(_exact.scratch_size(*grid.shape))
+    times = np.empty((3, size), dtype=np.float64)
+    zones = np.empty((3, size), dtype=np.int64)
+    lookups = np.empty(8, dtype=np.int64)
+    offsets = np.empty(n_rays + 1, dtype=np.int64)
+    offsets[0] = 0
+    capacity = min(n_rays, _exact.BLOCK) * worst
+    cells = np.empty((capacity, 3), dtype=np.int32)
+    t_enter = np.empty(capacity, dtype=np.float64)
+    t_exit = np.empty(capacity, dtype=np.float64)
+    used = 0
+    first = 0
+    chunk = _exact.BLOCK  # a first small chunk to estimate segments per ray
+    while first < n_rays:
+        last = min(first + chunk, n_rays)
+        needed = used + (last - first) * worst
+        if needed > capacity:
+            expected = int(1.2 * used / first * n_rays) if first else 0
+            capacity = max(needed, expected + SERIAL_CHUNK * worst)
+            cells, t_enter, t_exit = (_grown(a, capacity, used) for a in (cells, t_enter, t_exit))
+        used, _ = _exact.trace_span(first, last, origins, directions, *args, times, zones,
+                                    lookups, cells, t_enter, t_exit, offsets, used, capacity)
+        used = int(used)
+        first = last
+        chunk = SERIAL_CHUNK
+    return Traces(offsets, cells[:used], t_enter[:used], t_exit[:used])
+
+
+def _run_exact(grid, origins, directions, parallel):
+    """Serial: one appending pass. Parallel: one appending chunk per thread, then
+    packing; or, if a chunk outgrows its estimated room, a bound pass (set-up
+    only, no stepping), a trace pass into bounded slices and a gather.
+    Every path runs the same per-ray code, so the outputs are identical.
     """
     args = grid.kernel_args()
-    if parallel:
-        bound, trace_rows, gather = (
-            _exact.bound_rows_parallel, _exact.trace_rows_parallel, _exact.gather_rows_parallel
-        )
-    else:
-        bound, trace_rows, gather = _exact.bound_rows, _exact.trace_rows, _exact.gather_rows
+    if not parallel:
+        return _run_exact_serial(grid, origins, directions, args)
+    threads = numba.get_num_threads()
+    if threads == 1 or origins.shape[0] < 8 * _exact.BLOCK:
+        return _run_exact_serial(grid, origins, directions, args)  # too few rays to split
+    chunked = _run_exact_chunks(grid, origins, directions, args, threads)
+    if chunked is not None:
+        return chunked
+    return _run_exact_bounded(grid, origins, directions, args)
+
+
+def _run_exact_chunks(grid, origins, directions, args, threads):
+    """Parallel: one contiguous chunk of rays per thread, each appending into its
+    own region, then the regions packed left in place. Regions are sized from a
+    sample with a half to spare; returns None if a chunk still did not fit."""
+    n_rays = origins.shape[0]
+    worst = int(_exact.max_segments(*grid.shape))
+    sample = _run_exact_serial(grid, origins[: _exact.BLOCK], directions[: _exact.BLOCK], args)
+    per_ray = sample.cells.shape[0] / _exact.BLOCK
+    starts = np.linspace(0, n_rays, threads + 1).astype(np.int64)
+    room = (1.5 * per_ray * np.diff(starts)).astype(np.int64) + 4 * worst
+    regions = np.zeros(threads + 1, dtype=np.int64)
+    np.cumsum(room, out=regions[1:])
+    capacity = int(regions[-1])
+    cells = np.empty((capacity, 3), dtype=np.int32)
+    t_enter = np.empty(capacity, dtype=np.float64)
+    t_exit = np.empty(capacity, dtype=np.float64)
+    offsets = np.empty(n_rays + 1, dtype=np.int64)
+    offsets[0] = 0
+    ends, reached = _exact.trace_chunks(starts, regions, origins, directions, *args,
+                                        cells, t_enter, t_exit, offsets)
+    if np.any(reached != starts[1:]):
+        return None
+    total = int(_exact.pack_chunks(starts, regions, ends, offsets, cells, t_enter, t_exit))
+    return Traces(offsets, cells[:total], t_enter[:total], t_exit[:total])
+
+
+def _run_exact_bounded(grid, origins, directions, args):
+    """Parallel fallback: bound pass, prefix sum, trace pass, gather (no estimate needed)."""
+    bound, trace_rows, gather = (
+        _exact.bound_rows_parallel, _exact.trace_rows_parallel, _exact.gather_rows_parallel
+    )
     bounds, lookups = bound(origins, directions, *args)
     bound_offsets = np.zeros(origins.shape[0] + 1, dtype=np.int64)
     np.cumsum(bounds, out=bound_offsets[1:])
