@@ -36,7 +36,7 @@ import logsph_trace as lt
 grid = lt.Grid(0.1, 10.0, 64, 64, 64)
 lt.trace(grid, [0.5, 1.5, 1.0], [-0.3, -0.2, 1.0])
 first = time.perf_counter() - start
-lt.trace_many(grid, np.zeros((4, 3)) + 1.0, np.ones((4, 3)), parallel=True)
+lt.trace_many(grid, np.zeros((4096, 3)) + 1.0, np.ones((4096, 3)), parallel=True)
 print(first, time.perf_counter() - start)
 """
 

@@ -177,10 +177,6 @@ def run_csr(count, fill, origins, directions, args):
     return Traces(offsets, cells, t_enter, t_exit)
 
 
-# Rays per call of the serial kernel: the arrays grow between calls, never inside one.
-SERIAL_CHUNK = 4096
-
-
 def _grown(array, capacity, used):
     bigger = np.empty((capacity,) + array.shape[1:], dtype=array.dtype)
     bigger[:used] = array[:used]
@@ -188,10 +184,15 @@ def _grown(array, capacity, used):
 
 
 def _run_exact_serial(grid, origins, directions, args):
-    """One appending pass. The arrays are numpy's (allocated here, not in the
-    kernel: numpy asks the OS for huge pages, which makes first touch of a large
-    output several ns per segment cheaper) and are sized for the whole batch
-    from its first rays, with a fifth to spare."""
+    """One appending pass.
+
+    The arrays are numpy's, allocated here rather than in the kernel: numpy asks
+    the OS for huge pages, which makes first touch of a large output several ns
+    per segment cheaper. They start small (a small batch must not pay for
+    zeroing a 2 MB page it barely uses); when the kernel runs out of room it
+    stops before the next ray, and they grow to the batch's expected size,
+    extrapolated from the rays so far with a fifth to spare.
+    """
     n_rays = origins.shape[0]
     worst = int(_exact.max_segments(*grid.shape))
     size = int(_exact.scratch_size(*grid.shape))
@@ -200,25 +201,20 @@ def _run_exact_serial(grid, origins, directions, args):
     lookups = np.empty(8, dtype=np.int64)
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0
-    capacity = min(n_rays, _exact.BLOCK) * worst
+    capacity = 2 * worst + 32 * min(n_rays, _exact.BLOCK)
     cells = np.empty((capacity, 3), dtype=np.int32)
     t_enter = np.empty(capacity, dtype=np.float64)
     t_exit = np.empty(capacity, dtype=np.float64)
     used = 0
-    first = 0
-    chunk = _exact.BLOCK  # a first small chunk to estimate segments per ray
-    while first < n_rays:
-        last = min(first + chunk, n_rays)
-        needed = used + (last - first) * worst
-        if needed > capacity:
-            expected = int(1.2 * used / first * n_rays) if first else 0
-            capacity = max(needed, expected + SERIAL_CHUNK * worst)
+    row = 0
+    while row < n_rays:
+        used, row = _exact.trace_span(row, n_rays, origins, directions, *args, times, zones,
+                                      lookups, cells, t_enter, t_exit, offsets, used, capacity)
+        used, row = int(used), int(row)
+        if row < n_rays:
+            expected = int(1.2 * used / max(row, 1) * n_rays)
+            capacity = max(capacity + capacity // 2, expected) + 2 * worst
             cells, t_enter, t_exit = (_grown(a, capacity, used) for a in (cells, t_enter, t_exit))
-        used, _ = _exact.trace_span(first, last, origins, directions, *args, times, zones,
-                                    lookups, cells, t_enter, t_exit, offsets, used, capacity)
-        used = int(used)
-        first = last
-        chunk = SERIAL_CHUNK
     return Traces(offsets, cells[:used], t_enter[:used], t_exit[:used])
 
 
