@@ -77,7 +77,10 @@ def main(argv=None):
     numba.set_num_threads(1)
     grid = make_grid(args.cells)
     origins, directions = make_rays(args.rays, seed=1)
-    lt.trace_many(grid, origins[:5], directions[:5], method="bisect", parallel=False)
+    # Warm-up: compilation (or cache loading) and the allocator's first large
+    # allocations, which every later call reuses, for both methods.
+    lt.trace_many(grid, origins, directions, method="bisect", parallel=False)
+    lt.trace_many(grid, origins, directions, parallel=False)
     exact_s, exact = _best_time(
         lambda: lt.trace_many(grid, origins, directions, parallel=False), args.repeats
     )

@@ -322,10 +322,12 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
         boundaries, sorted and classified -- exact but O(n log n).
     parallel : bool
         Trace rays on all Numba threads (``prange``). The output is identical
-        to the serial run. For ``"exact"``, a bound pass sizes a slice for each
-        ray, the trace pass writes each ray into its own slice, and a gather
-        pass packs the slices; while it runs, memory peaks at about 2.5 times
-        the output. The baselines use a count pass and a fill pass.
+        to the serial run. For ``"exact"`` every ray is traced once: serially
+        by appending; in parallel as one chunk of rays per thread, each
+        appending to its own region, the regions then packed (if a chunk
+        outgrows its estimated room: a bound pass, a trace pass into bounded
+        slices and a gather). The returned arrays may be views of arrays up to
+        about 1.5 times longer. The baselines use a count pass and a fill pass.
     default_t : float
         ``"bisect"`` only: the first step of every search, in length units
         (paper: 1.5531 m).
