@@ -22,7 +22,7 @@ import numba
 import numpy as np
 
 import logsph_trace as lt
-from bench.workload import make_grid, make_rays
+from bench.workload import best_time, make_grid, make_rays
 
 RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_TS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 1.5531, 2.0, 5.0)
@@ -32,16 +32,6 @@ def _keys(grid, cells):
     n_rho, n_theta, n_phi = grid.shape
     cells = cells.astype(np.int64)
     return (cells[:, 0] * n_theta + cells[:, 1]) * n_phi + cells[:, 2]
-
-
-def _best_time(func, repeats):
-    best = np.inf
-    result = None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = func()
-        best = min(best, time.perf_counter() - start)
-    return best, result
 
 
 def compare(grid, exact, bisect):
@@ -81,13 +71,13 @@ def main(argv=None):
     # allocations, which every later call reuses, for both methods.
     lt.trace_many(grid, origins, directions, method="bisect", parallel=False)
     lt.trace_many(grid, origins, directions, parallel=False)
-    exact_s, exact = _best_time(
+    exact_s, exact = best_time(
         lambda: lt.trace_many(grid, origins, directions, parallel=False), args.repeats
     )
     crossed = exact.cells.shape[0]
     rows = []
     for default_t in DEFAULT_TS:
-        seconds, bisect = _best_time(
+        seconds, bisect = best_time(
             lambda: lt.trace_many(grid, origins, directions, method="bisect",
                                   default_t=default_t, parallel=False),
             args.repeats,

@@ -24,7 +24,7 @@ import numba
 import numpy as np
 
 import logsph_trace as lt
-from bench.workload import make_box, make_grid, make_rays
+from bench.workload import best_time, make_box, make_grid, make_rays
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -39,16 +39,6 @@ first = time.perf_counter() - start
 lt.trace_many(grid, np.zeros((4096, 3)) + 1.0, np.ones((4096, 3)), parallel=True)
 print(first, time.perf_counter() - start)
 """
-
-
-def _best(func, repeats):
-    best = np.inf
-    result = None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = func()
-        best = min(best, time.perf_counter() - start)
-    return best, result
 
 
 def first_call_times():
@@ -82,38 +72,35 @@ def measure(n_rays, cells, repeats, threads):
     voxels = {}
     for _ in range(repeats):  # alternate the kernels so both see the same noise
         numba.set_num_threads(1)
-        seconds, traces = _best(lambda: lt.trace_many(grid, origins, directions, parallel=False), 1)
+        seconds, traces = best_time(lambda: lt.trace_many(grid, origins, directions, parallel=False), 1)
         timings["exact"] = min(timings["exact"], seconds)
         voxels["exact"] = traces.cells.shape[0]
-        seconds, traces = _best(lambda: box.trace_many(origins, directions, parallel=False), 1)
+        seconds, traces = best_time(lambda: box.trace_many(origins, directions, parallel=False), 1)
         timings["amanatides_woo"] = min(timings["amanatides_woo"], seconds)
         voxels["amanatides_woo"] = traces.cells.shape[0]
         numba.set_num_threads(threads)
-        seconds, traces = _best(lambda: lt.trace_many(grid, origins, directions, parallel=True), 1)
+        seconds, traces = best_time(lambda: lt.trace_many(grid, origins, directions, parallel=True), 1)
         timings["exact_parallel"] = min(timings["exact_parallel"], seconds)
     numba.set_num_threads(threads)
 
-    exact_ns = timings["exact"] / voxels["exact"] * 1e9
-    aw_ns = timings["amanatides_woo"] / voxels["amanatides_woo"] * 1e9
+    def summary(name):
+        seconds = timings[name]
+        return {
+            "seconds": seconds,
+            "voxels": int(voxels[name]),
+            "voxels_per_ray": voxels[name] / n_rays,
+            "ns_per_voxel": seconds / voxels[name] * 1e9,
+            "rays_per_second": n_rays / seconds,
+        }
+
+    exact, reference = summary("exact"), summary("amanatides_woo")
     return {
         "rays": n_rays,
         "cells_per_axis": cells,
         "repeats": repeats,
-        "exact": {
-            "seconds": timings["exact"],
-            "voxels": int(voxels["exact"]),
-            "voxels_per_ray": voxels["exact"] / n_rays,
-            "ns_per_voxel": exact_ns,
-            "rays_per_second": n_rays / timings["exact"],
-        },
-        "amanatides_woo": {
-            "seconds": timings["amanatides_woo"],
-            "voxels": int(voxels["amanatides_woo"]),
-            "voxels_per_ray": voxels["amanatides_woo"] / n_rays,
-            "ns_per_voxel": aw_ns,
-            "rays_per_second": n_rays / timings["amanatides_woo"],
-        },
-        "exact_over_amanatides_woo_per_voxel": exact_ns / aw_ns,
+        "exact": exact,
+        "amanatides_woo": reference,
+        "exact_over_amanatides_woo_per_voxel": exact["ns_per_voxel"] / reference["ns_per_voxel"],
         "parallel": {
             "threads": threads,
             "seconds": timings["exact_parallel"],

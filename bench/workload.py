@@ -7,6 +7,8 @@ The Amanatides-Woo reference traces the same rays through the cube of equal
 voxel count that holds the ball.
 """
 
+import time
+
 import numpy as np
 
 import logsph_trace as lt
@@ -32,3 +34,14 @@ def make_rays(n_rays=100_000, seed=0):
     radial /= np.linalg.norm(radial, axis=1)[:, None]
     origins = radial * RHO_MAX * rng.random(n_rays)[:, None] ** (1 / 3)
     return origins, directions
+
+
+def best_time(func, repeats):
+    """(shortest wall time of ``repeats`` calls, the last result)."""
+    best = np.inf
+    result = None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = func()
+        best = min(best, time.perf_counter() - start)
+    return best, result

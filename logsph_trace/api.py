@@ -158,23 +158,29 @@ def _rays(origins, directions):
     return origins, _unit_directions(directions)
 
 
+def _segment_arrays(length):
+    """Empty (cells, t_enter, t_exit) for ``length`` segments."""
+    return (
+        np.empty((length, 3), dtype=np.int32),
+        np.empty(length, dtype=np.float64),
+        np.empty(length, dtype=np.float64),
+    )
+
+
+def _offsets(counts):
+    """CSR offsets (m + 1,) from per-ray counts."""
+    offsets = np.zeros(counts.shape[0] + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    return offsets
+
+
 def run_csr(count, fill, origins, directions, args):
     """Count pass, prefix sum, fill pass: every ray writes its own slice, so the
-    result does not depend on the thread count or the order rays finish in.
-
-    ``count`` returns the segments per ray and, optionally (as a tuple), extra
-    per-ray arrays the fill pass takes before the offsets.
-    """
-    counted = count(origins, directions, *args)
-    counts, carried = (counted[0], counted[1:]) if isinstance(counted, tuple) else (counted, ())
-    offsets = np.zeros(origins.shape[0] + 1, dtype=np.int64)
-    np.cumsum(counts, out=offsets[1:])
-    total = int(offsets[-1])
-    cells = np.empty((total, 3), dtype=np.int32)
-    t_enter = np.empty(total, dtype=np.float64)
-    t_exit = np.empty(total, dtype=np.float64)
-    fill(origins, directions, *args, *carried, offsets, cells, t_enter, t_exit)
-    return Traces(offsets, cells, t_enter, t_exit)
+    result does not depend on the thread count or the order rays finish in."""
+    offsets = _offsets(count(origins, directions, *args))
+    segments = _segment_arrays(int(offsets[-1]))
+    fill(origins, directions, *args, offsets, *segments)
+    return Traces(offsets, *segments)
 
 
 def _grown(array, capacity, used):
@@ -202,9 +208,7 @@ def _run_exact_serial(grid, origins, directions, args):
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0
     capacity = 2 * worst + 32 * min(n_rays, _exact.BLOCK)
-    cells = np.empty((capacity, 3), dtype=np.int32)
-    t_enter = np.empty(capacity, dtype=np.float64)
-    t_exit = np.empty(capacity, dtype=np.float64)
+    cells, t_enter, t_exit = _segment_arrays(capacity)
     used = 0
     row = 0
     while row < n_rays:
@@ -248,10 +252,7 @@ def _run_exact_chunks(grid, origins, directions, args, threads):
     room = (1.5 * per_ray * np.diff(starts)).astype(np.int64) + 4 * worst
     regions = np.zeros(threads + 1, dtype=np.int64)
     np.cumsum(room, out=regions[1:])
-    capacity = int(regions[-1])
-    cells = np.empty((capacity, 3), dtype=np.int32)
-    t_enter = np.empty(capacity, dtype=np.float64)
-    t_exit = np.empty(capacity, dtype=np.float64)
+    cells, t_enter, t_exit = _segment_arrays(int(regions[-1]))
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0
     ends, reached = _exact.trace_chunks(starts, regions, origins, directions, *args,
@@ -268,23 +269,12 @@ def _run_exact_bounded(grid, origins, directions, args):
         _exact.bound_rows_parallel, _exact.trace_rows_parallel, _exact.gather_rows_parallel
     )
     bounds, lookups = bound(origins, directions, *args)
-    bound_offsets = np.zeros(origins.shape[0] + 1, dtype=np.int64)
-    np.cumsum(bounds, out=bound_offsets[1:])
-    capacity = int(bound_offsets[-1])
-    loose = (
-        np.empty((capacity, 3), dtype=np.int32),
-        np.empty(capacity, dtype=np.float64),
-        np.empty(capacity, dtype=np.float64),
-    )
-    counts = trace_rows(origins, directions, *args, lookups, bound_offsets, *loose)
-    offsets = np.zeros(origins.shape[0] + 1, dtype=np.int64)
-    np.cumsum(counts, out=offsets[1:])
-    total = int(offsets[-1])
-    cells = np.empty((total, 3), dtype=np.int32)
-    t_enter = np.empty(total, dtype=np.float64)
-    t_exit = np.empty(total, dtype=np.float64)
-    gather(bound_offsets, offsets, *loose, cells, t_enter, t_exit)
-    return Traces(offsets, cells, t_enter, t_exit)
+    bound_offsets = _offsets(bounds)
+    loose = _segment_arrays(int(bound_offsets[-1]))
+    offsets = _offsets(trace_rows(origins, directions, *args, lookups, bound_offsets, *loose))
+    segments = _segment_arrays(int(offsets[-1]))
+    gather(bound_offsets, offsets, *loose, *segments)
+    return Traces(offsets, *segments)
 
 
 def _bisect_options(grid, default_t, max_iter):
