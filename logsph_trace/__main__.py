@@ -31,7 +31,7 @@ def main(argv=None):
     rng = np.random.default_rng(0)
     origins = rng.uniform(-60, 60, (100_000, 3))
     directions = rng.normal(size=(100_000, 3))
-    trace_many(grid, origins[:10], directions[:10])
+    trace_many(grid, origins[:4096], directions[:4096])  # compile (or load) the parallel kernels
     start = time.perf_counter()
     traces = trace_many(grid, origins, directions)
     elapsed = time.perf_counter() - start

@@ -23,7 +23,8 @@ one: the indices cannot drift.
 
 Each family's crossings form a sorted list, computed in a loop of independent
 square roots and divisions (the CPU overlaps them); the traversal is then a
-three-way merge of the lists, as cheap per voxel as Amanatides & Woo's step.
+three-way merge of the lists, without a branch on which family crosses (about
+6 ns a step on the benchmark machine, close to an Amanatides & Woo step).
 Every loop runs over a count fixed beforehand, at most ``scratch_size``.
 """
 
