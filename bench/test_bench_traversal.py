@@ -56,3 +56,10 @@ def test_exact_single_ray(benchmark, one_thread):
     grid = make_grid(128)
     benchmark.group = "single gaze ray (latency)"
     benchmark(lt.trace, grid, [0.5, 1.5, 1.0], [-0.3, -0.2, 1.0])
+
+
+def test_gaze_cone_1000_rays(benchmark):
+    grid = lt.Grid(0.3, 10.0, 64, 360, 180)
+    benchmark.group = "gaze cone, 1,000 rays, 64 x 360 x 180, all threads"
+    cone = benchmark(lt.trace_cone, grid, [0.4, 1.5, 1.2], [-0.1, -0.4, 1.0], 0.0873, n_rays=1000)
+    benchmark.extra_info["cells"] = len(cone)

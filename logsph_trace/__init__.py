@@ -6,8 +6,10 @@ and for how long? See ``Grid``, ``trace`` and ``trace_many``.
 
 from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
 from .api import METHODS, Trace, Traces, trace, trace_many
+from .cone import ConeTrace, trace_cone, trace_cones
 
 __all__ = [
+    "ConeTrace",
     "Grid",
     "METHODS",
     "Trace",
@@ -16,6 +18,8 @@ __all__ = [
     "from_ros",
     "spherical_to_cartesian",
     "trace",
+    "trace_cone",
+    "trace_cones",
     "trace_many",
 ]
 __version__ = "0.1.0"

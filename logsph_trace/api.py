@@ -222,6 +222,10 @@ def _run_exact_serial(grid, origins, directions, args):
     return Traces(offsets, cells[:used], t_enter[:used], t_exit[:used])
 
 
+# Below this many rays a batch is traced on one thread even with parallel=True.
+PARALLEL_MIN_RAYS = 512
+
+
 def _run_exact(grid, origins, directions, parallel):
     """Serial: one appending pass. Parallel: one appending chunk per thread, then
     packing; or, if a chunk outgrows its estimated room, a bound pass (set-up
@@ -232,7 +236,7 @@ def _run_exact(grid, origins, directions, parallel):
     if not parallel:
         return _run_exact_serial(grid, origins, directions, args)
     threads = numba.get_num_threads()
-    if threads == 1 or origins.shape[0] < 8 * _exact.BLOCK:
+    if threads == 1 or origins.shape[0] < PARALLEL_MIN_RAYS:
         return _run_exact_serial(grid, origins, directions, args)  # too few rays to split
     chunked = _run_exact_chunks(grid, origins, directions, args, threads)
     if chunked is not None:
@@ -246,8 +250,9 @@ def _run_exact_chunks(grid, origins, directions, args, threads):
     sample with a half to spare; returns None if a chunk still did not fit."""
     n_rays = origins.shape[0]
     worst = int(_exact.max_segments(*grid.shape))
-    sample = _run_exact_serial(grid, origins[: _exact.BLOCK], directions[: _exact.BLOCK], args)
-    per_ray = sample.cells.shape[0] / _exact.BLOCK
+    sampled = min(_exact.BLOCK, max(32, n_rays // 16))  # traced twice: keep it small
+    sample = _run_exact_serial(grid, origins[:sampled], directions[:sampled], args)
+    per_ray = sample.cells.shape[0] / sampled
     starts = np.linspace(0, n_rays, threads + 1).astype(np.int64)
     room = (1.5 * per_ray * np.diff(starts)).astype(np.int64) + 4 * worst
     regions = np.zeros(threads + 1, dtype=np.int64)

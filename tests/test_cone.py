@@ -1,0 +1,132 @@
+"""Gaze cones: sampling, weights, aggregation, the default ray count, bad input."""
+
+import numpy as np
+import pytest
+
+import logsph_trace as lt
+from logsph_trace.cone import cone_directions, default_ray_count, trace_cone, trace_cones
+
+GRID = lt.Grid(0.3, 10.0, 24, 72, 36)
+ORIGIN = np.array([0.4, 1.5, 1.2])
+GAZE = np.array([-0.1, -0.4, 1.0])
+
+
+def _union_of_rays(cone):
+    """Reference aggregation in plain numpy: weight and first distance per cell."""
+    weights, first = {}, {}
+    for ray, one in enumerate(cone.traces):
+        seen = set()
+        for cell, t0 in zip(map(tuple, one.cells.tolist()), one.t_enter):
+            first[cell] = min(first.get(cell, np.inf), t0)
+            if cell not in seen:
+                weights[cell] = weights.get(cell, 0.0) + cone.ray_weights[ray]
+                seen.add(cell)
+    return weights, first
+
+
+def test_zero_half_angle_is_the_single_ray():
+    cone = trace_cone(GRID, ORIGIN, GAZE, 0.0)
+    ray = lt.trace(GRID, ORIGIN, GAZE)
+    assert cone.directions.shape == (1, 3)
+    np.testing.assert_array_equal(cone.cells, ray.unique())
+    assert cone.weights.sum() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("pattern", ["fibonacci", "rings"])
+@pytest.mark.parametrize("weighting", ["gaussian", "uniform"])
+def test_weights_sum_to_one_and_every_crossed_cell_is_reported(pattern, weighting):
+    cone = trace_cone(GRID, ORIGIN, GAZE, np.radians(8), n_rays=200, pattern=pattern,
+                      weighting=weighting)
+    assert cone.ray_weights.sum() == pytest.approx(1.0)
+    assert cone.weights.sum() == pytest.approx(1.0)
+    weights, first = _union_of_rays(cone)
+    total = sum(weights.values())
+    got = {tuple(c): (w, t) for c, w, t in zip(cone.cells.tolist(), cone.weights, cone.t_first)}
+    assert set(got) == set(weights)
+    for cell, (w, t) in got.items():
+        assert w == pytest.approx(weights[cell] / total)
+        assert t == first[cell]
+    assert np.all(np.diff(cone.t_first) >= 0)  # ordered by first reach
+
+
+def test_sampled_directions_lie_in_the_cone():
+    for pattern in ("fibonacci", "rings"):
+        directions, angles = cone_directions(GAZE, 0.3, 100, pattern)
+        axis = GAZE / np.linalg.norm(GAZE)
+        np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0)
+        np.testing.assert_allclose(np.arccos(np.clip(directions @ axis, -1, 1)), angles, atol=1e-7)
+        assert angles.max() <= 0.3 + 1e-12
+    assert cone_directions(GAZE, 0.3, 100, "fibonacci")[0].shape == (100, 3)
+    assert cone_directions(GAZE, 0.3, 100, "rings")[0].shape == (1 + 3 * 6 * 7, 3)  # 6 rings
+
+
+def test_gaussian_weighting_favours_the_axis():
+    cone = trace_cone(GRID, ORIGIN, GAZE, np.radians(10), n_rays=300)
+    _, angles = cone_directions(GAZE, np.radians(10), 300)
+    assert cone.ray_weights[np.argmin(angles)] > 5 * cone.ray_weights[np.argmax(angles)]
+
+
+@pytest.mark.parametrize(
+    "grid, origin, gaze, degrees",
+    [
+        (GRID, ORIGIN, GAZE, 6),
+        (GRID, [1.0, 1.6, 0.0], [0.2, -0.3, 1.0], 3),
+        (lt.Grid(0.3, 10.0, 64, 360, 180), ORIGIN, GAZE, 15),
+        (lt.Grid(0.3, 5.0, 16, 36, 18), [2.0, 0.5, -1.0], [-1.0, 0.0, 1.0], 1),
+    ],
+)
+def test_default_ray_count_covers_a_ten_times_denser_cone(grid, origin, gaze, degrees):
+    # Stated tolerance (default_ray_count): the cells a 10x denser cone adds
+    # carry under 3% of its weight -- slivers grazed by few of its rays.
+    half_angle = np.radians(degrees)
+    n_rays = default_ray_count(grid, origin, half_angle)
+    default = trace_cone(grid, origin, gaze, half_angle)
+    dense = trace_cone(grid, origin, gaze, half_angle, n_rays=10 * n_rays)
+    assert default.directions.shape[0] == n_rays >= 16
+    have = set(map(tuple, default.cells.tolist()))
+    missing = [w for c, w in zip(dense.cells.tolist(), dense.weights) if tuple(c) not in have]
+    assert sum(missing) < 0.03
+
+
+def test_a_cone_across_the_theta_seam():
+    # Looking along -z: theta = +-pi, the seam of the full circle.
+    cone = trace_cone(GRID, [0.2, 0.3, 1.0], [0.0, 0.0, -1.0], np.radians(10), n_rays=300)
+    weights, _ = _union_of_rays(cone)
+    assert set(map(tuple, cone.cells.tolist())) == set(weights)
+    j = cone.cells[:, 1]
+    assert np.any(j == 0) and np.any(j == GRID.n_theta - 1)
+
+
+def test_many_cones_equal_one_at_a_time():
+    origins = np.array([ORIGIN, [1.0, 0.2, -2.0], [0.0, 1.0, 0.5]])
+    gazes = np.array([GAZE, [0.3, 0.1, 1.0], [0.0, -1.0, 0.2]])
+    half_angles = [0.05, 0.1, 0.0]
+    batch = trace_cones(GRID, origins, gazes, half_angles, n_rays=64)
+    for result, origin, gaze, angle in zip(batch, origins, gazes, half_angles):
+        alone = trace_cone(GRID, origin, gaze, angle, n_rays=64)
+        np.testing.assert_array_equal(result.cells, alone.cells)
+        np.testing.assert_allclose(result.weights, alone.weights)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(half_angle=-0.1), r"half_angle must be in \[0, pi/2\)"),
+        (dict(half_angle=np.pi / 2), r"half_angle must be in \[0, pi/2\)"),
+        (dict(half_angle=np.nan), r"half_angle must be in \[0, pi/2\)"),
+        (dict(half_angle="wide"), "half_angle must be a number"),
+        (dict(origin=[np.nan, 0, 0]), "origin must be finite"),
+        (dict(origin=[0, 0]), r"origin must have shape \(m, 3\) or \(3,\)"),
+        (dict(direction=[0, 0, 0]), "axis must be non-zero"),
+        (dict(n_rays=0), "n_rays must be a positive integer"),
+        (dict(pattern="spiral"), "pattern must be one of"),
+        (dict(weighting="cosine"), "weighting must be one of"),
+        (dict(sigma=-1.0), "sigma must be a positive number"),
+        (dict(grid="not a grid"), "grid must be a logsph_trace.Grid"),
+    ],
+)
+def test_bad_cone_input(kwargs, match):
+    args = dict(grid=GRID, origin=ORIGIN, direction=GAZE, half_angle=0.1, n_rays=10)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        trace_cone(**args)
