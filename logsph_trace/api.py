@@ -189,7 +189,7 @@ def _grown(array, capacity, used):
     return bigger
 
 
-def _run_exact_serial(grid, origins, directions, args):
+def _run_exact_serial(grid, origins, directions, t_max, args):
     """One appending pass.
 
     The arrays are numpy's, allocated here rather than in the kernel: numpy asks
@@ -212,7 +212,7 @@ def _run_exact_serial(grid, origins, directions, args):
     used = 0
     row = 0
     while row < n_rays:
-        used, row = _exact.trace_span(row, n_rays, origins, directions, *args, times, zones,
+        used, row = _exact.trace_span(row, n_rays, origins, directions, t_max, *args, times, zones,
                                       lookups, cells, t_enter, t_exit, offsets, used, capacity)
         used, row = int(used), int(row)
         if row < n_rays:
@@ -226,7 +226,7 @@ def _run_exact_serial(grid, origins, directions, args):
 PARALLEL_MIN_RAYS = 512
 
 
-def _run_exact(grid, origins, directions, parallel):
+def _run_exact(grid, origins, directions, t_max, parallel):
     """Serial: one appending pass. Parallel: one appending chunk per thread, then
     packing; or, if a chunk outgrows its estimated room, a bound pass (set-up
     only, no stepping), a trace pass into bounded slices and a gather.
@@ -234,24 +234,24 @@ def _run_exact(grid, origins, directions, parallel):
     """
     args = grid.kernel_args()
     if not parallel:
-        return _run_exact_serial(grid, origins, directions, args)
+        return _run_exact_serial(grid, origins, directions, t_max, args)
     threads = numba.get_num_threads()
     if threads == 1 or origins.shape[0] < PARALLEL_MIN_RAYS:
-        return _run_exact_serial(grid, origins, directions, args)  # too few rays to split
-    chunked = _run_exact_chunks(grid, origins, directions, args, threads)
+        return _run_exact_serial(grid, origins, directions, t_max, args)  # too few to split
+    chunked = _run_exact_chunks(grid, origins, directions, t_max, args, threads)
     if chunked is not None:
         return chunked
-    return _run_exact_bounded(grid, origins, directions, args)
+    return _run_exact_bounded(grid, origins, directions, t_max, args)
 
 
-def _run_exact_chunks(grid, origins, directions, args, threads):
+def _run_exact_chunks(grid, origins, directions, t_max, args, threads):
     """Parallel: one contiguous chunk of rays per thread, each appending into its
     own region, then the regions packed left in place. Regions are sized from a
     sample with a half to spare; returns None if a chunk still did not fit."""
     n_rays = origins.shape[0]
     worst = int(_exact.max_segments(*grid.shape))
     sampled = min(_exact.BLOCK, max(32, n_rays // 16))  # traced twice: keep it small
-    sample = _run_exact_serial(grid, origins[:sampled], directions[:sampled], args)
+    sample = _run_exact_serial(grid, origins[:sampled], directions[:sampled], t_max[:sampled], args)
     per_ray = sample.cells.shape[0] / sampled
     starts = np.linspace(0, n_rays, threads + 1).astype(np.int64)
     room = (1.5 * per_ray * np.diff(starts)).astype(np.int64) + 4 * worst
@@ -260,7 +260,7 @@ def _run_exact_chunks(grid, origins, directions, args, threads):
     cells, t_enter, t_exit = _segment_arrays(int(regions[-1]))
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0
-    ends, reached = _exact.trace_chunks(starts, regions, origins, directions, *args,
+    ends, reached = _exact.trace_chunks(starts, regions, origins, directions, t_max, *args,
                                         cells, t_enter, t_exit, offsets)
     if np.any(reached != starts[1:]):
         return None
@@ -268,7 +268,7 @@ def _run_exact_chunks(grid, origins, directions, args, threads):
     return Traces(offsets, cells[:total], t_enter[:total], t_exit[:total])
 
 
-def _run_exact_bounded(grid, origins, directions, args):
+def _run_exact_bounded(grid, origins, directions, t_max, args):
     """Parallel fallback: bound pass, prefix sum, trace pass, gather (no estimate needed)."""
     bound, trace_rows, gather = (
         _exact.bound_rows_parallel, _exact.trace_rows_parallel, _exact.gather_rows_parallel
@@ -276,10 +276,28 @@ def _run_exact_bounded(grid, origins, directions, args):
     bounds, lookups = bound(origins, directions, *args)
     bound_offsets = _offsets(bounds)
     loose = _segment_arrays(int(bound_offsets[-1]))
-    offsets = _offsets(trace_rows(origins, directions, *args, lookups, bound_offsets, *loose))
+    offsets = _offsets(trace_rows(origins, directions, t_max, *args, lookups, bound_offsets, *loose))
     segments = _segment_arrays(int(offsets[-1]))
     gather(bound_offsets, offsets, *loose, *segments)
     return Traces(offsets, *segments)
+
+
+def _distances(t_max, n_rays):
+    """``t_max`` as a contiguous (m,) float64 array; ``None`` is no limit."""
+    if t_max is None:
+        return np.full(n_rays, np.inf)
+    try:
+        array = np.asarray(t_max, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"t_max must be a number or an array of numbers, got {t_max!r}") from None
+    if array.ndim == 0:
+        array = np.full(n_rays, float(array))
+    if array.shape != (n_rays,):
+        raise ValueError(f"t_max must be a number or have shape ({n_rays},), got {array.shape}")
+    if np.any(np.isnan(array)) or np.any(array < 0):
+        bad = int(np.argmax(np.isnan(array) | (array < 0)))
+        raise ValueError(f"t_max must be >= 0 (inf allowed); row {bad} is {float(array[bad])!r}")
+    return np.ascontiguousarray(array)
 
 
 def _bisect_options(grid, default_t, max_iter):
@@ -298,7 +316,7 @@ def _bisect_options(grid, default_t, max_iter):
 
 
 def trace_many(grid, origins, directions=None, method="exact", parallel=True,
-               default_t=PAPER_DEFAULT_T, max_iter=None):
+               default_t=PAPER_DEFAULT_T, max_iter=None, t_max=None):
     """Trace many rays through ``grid``.
 
     Parameters
@@ -329,6 +347,10 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     max_iter : int, optional
         ``"bisect"`` only: samples allowed per ray, so a ray grazing a boundary
         cannot loop forever. Default ``64 * (2 n_rho + n_theta + 2 n_phi + 4)``.
+    t_max : float or array_like, shape (m,), optional
+        ``"exact"`` only: trace each ray up to this distance (e.g. a sensor
+        ray up to its hit point); the last segment ends there. Default: to the
+        end of the region.
 
     Returns
     -------
@@ -339,17 +361,19 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     ------
     ValueError
         Wrong shapes, NaN or infinite values, zero directions, unknown method,
-        bad ``default_t`` or ``max_iter``, or ``grid`` not a :class:`Grid` --
-        before any kernel runs.
+        bad ``default_t``, ``max_iter`` or ``t_max``, or ``grid`` not a
+        :class:`Grid` -- before any kernel runs.
     """
     _check_grid(grid)
     _check_method(method)
     if method == "bisect":
         default_t, max_iter = _bisect_options(grid, default_t, max_iter)
+    if t_max is not None and method != "exact":
+        raise ValueError(f"t_max is supported by method='exact' only, got method={method!r}")
     origins, directions = _rays(origins, directions)
     parallel = bool(parallel)
     if method == "exact":
-        return _run_exact(grid, origins, directions, parallel)
+        return _run_exact(grid, origins, directions, _distances(t_max, origins.shape[0]), parallel)
     kinds = (grid.rho_edges, grid.rho_kind, grid.theta_edges, grid.theta_kind)
     if method == "bisect":
         args = kinds + (grid.theta_full, grid.phi_edges, grid.phi_kind, default_t, max_iter)
@@ -363,7 +387,8 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     return run_csr(count, fill, origins, directions, args)
 
 
-def trace(grid, origin, direction, method="exact", default_t=PAPER_DEFAULT_T, max_iter=None):
+def trace(grid, origin, direction, method="exact", default_t=PAPER_DEFAULT_T, max_iter=None,
+          t_max=None):
     """Trace one ray; see :func:`trace_many`.
 
     Parameters
@@ -373,6 +398,8 @@ def trace(grid, origin, direction, method="exact", default_t=PAPER_DEFAULT_T, ma
     method : {"exact", "bisect", "thibaudeau"}
     default_t, max_iter :
         ``"bisect"`` only, see :func:`trace_many`.
+    t_max : float, optional
+        ``"exact"`` only: trace up to this distance.
 
     Returns
     -------
@@ -382,4 +409,4 @@ def trace(grid, origin, direction, method="exact", default_t=PAPER_DEFAULT_T, ma
         if np.shape(value) != (3,):
             raise ValueError(f"{name} must have shape (3,), got {np.shape(value)}")
     return trace_many(grid, origin, direction, method=method, parallel=False,
-                      default_t=default_t, max_iter=max_iter)[0]
+                      default_t=default_t, max_iter=max_iter, t_max=t_max)[0]

@@ -157,11 +157,12 @@ def test_every_parallel_path_equals_the_serial_one():
     serial = lt.trace_many(grid, origins, directions, parallel=False)
     o, d = trace_module._rays(origins, directions)
     args = grid.kernel_args()
-    assert trace_module._run_exact_chunks(grid, o, d, args, threads=2) is None  # overflow
+    far = np.full(len(o), np.inf)
+    assert trace_module._run_exact_chunks(grid, o, d, far, args, threads=2) is None  # overflow
     results = [
         lt.trace_many(grid, origins, directions, parallel=True),
-        trace_module._run_exact_chunks(grid, o[::-1].copy(), d[::-1].copy(), args, threads=3),
-        trace_module._run_exact_bounded(grid, o, d, args),
+        trace_module._run_exact_chunks(grid, o[::-1].copy(), d[::-1].copy(), far, args, threads=3),
+        trace_module._run_exact_bounded(grid, o, d, far, args),
     ]
     reversed_serial = lt.trace_many(grid, origins[::-1], directions[::-1], parallel=False)
     for result, want in zip(results, [serial, reversed_serial, serial]):

@@ -123,7 +123,7 @@ def scratch_size(n_rho, n_theta, n_phi):
     branches, 2 (n_phi + 1), plus one relocation at the origin. Two more slots:
     slot 0 holds the starting zone, and an ``inf`` sentinel ends each list.
     """
-    return max(2 * (n_rho + 1), n_theta + 2, 2 * (n_phi + 1) + 1) + 2
+    return max(2 * (n_rho + 1) + 1, n_theta + 2, 2 * (n_phi + 1) + 1) + 2
 
 
 # What a call of trace_ray does (see its docstring).
@@ -138,9 +138,9 @@ def trace_ray(
     rho_edges, rho_sq, rho_kind,
     theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
     phi_edges, phi_tan2, phi_nappe, phi_kind,
-    times, zones, lookups, cells, t_enter, t_exit, start, mode,
+    t_max, times, zones, lookups, cells, t_enter, t_exit, start, mode,
 ):
-    """Trace one ray (unit direction).
+    """Trace one ray (unit direction) up to distance ``t_max`` (``inf``: to the end).
 
     ``mode == BOUND``: run phase 1 only, store the ray's zone lookups (the
     atan2 and log calls that are most of the set-up) in ``lookups`` (8 ints) and
@@ -274,7 +274,8 @@ def trace_ray(
 
     if mode == BOUND:
         jumps = (1 if t_axis < inf else 0) + ph_jump
-        return rho_steps_in + rho_steps_out + th_steps + ph1_steps + ph2_steps + jumps
+        # + 1: the stop at t_max, an extra crossing out of the region.
+        return rho_steps_in + rho_steps_out + th_steps + ph1_steps + ph2_steps + jumps + 1
 
     # ---- phase 2: each family's crossing times, in order, up to the final exit.
     n_r = 0
@@ -292,7 +293,15 @@ def trace_ray(
         times[RHO, n_r + 1] = t_prev
         zones[RHO, n_r + 1] = zone
         n_r += 1
-    # The last rho crossing leaves rho_max for good: nothing after it matters.
+    if t_max < times[RHO, n_r]:
+        # Stop at t_max: drop the rho crossings beyond it and leave the region
+        # there (zone n_rho), so the merge ends the last segment at t_max.
+        while n_r > 0 and times[RHO, n_r] >= t_max:
+            n_r -= 1
+        times[RHO, n_r + 1] = t_max
+        zones[RHO, n_r + 1] = n_rho
+        n_r += 1
+    # The last rho crossing leaves the region for good: nothing after it matters.
     t_final = times[RHO, n_r]
 
     n_t = 0
@@ -462,12 +471,12 @@ def _bound_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, t
             rho_edges, rho_sq, rho_kind,
             theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
             phi_edges, phi_tan2, phi_nappe, phi_kind,
-            no_times, no_zones, lookups[row], no_cells, no_t, no_t, 0, BOUND,
+            np.inf, no_times, no_zones, lookups[row], no_cells, no_t, no_t, 0, BOUND,
         )
     return bounds, lookups
 
 
-def _trace_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
+def _trace_rows(origins, directions, t_max, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
                 theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind,
                 lookups, bound_offsets, cells, t_enter, t_exit):
     """Pass 2: each ray writes its segments from bound_offsets[r] on; returns the counts."""
@@ -486,7 +495,8 @@ def _trace_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, t
                 rho_edges, rho_sq, rho_kind,
                 theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
                 phi_edges, phi_tan2, phi_nappe, phi_kind,
-                times, zones, lookups[row], cells, t_enter, t_exit, bound_offsets[row], TRACE,
+                t_max[row], times, zones, lookups[row], cells, t_enter, t_exit, bound_offsets[row],
+                TRACE,
             )
     return counts
 
@@ -508,11 +518,11 @@ def _gather_rows(bound_offsets, offsets, loose_cells, loose_enter, loose_exit,
 @jit
 def max_segments(n_rho, n_theta, n_phi):
     """Most segments one ray can have: one per crossing (see ``scratch_size``)."""
-    return 2 * (n_rho + 1) + (n_theta + 2) + 2 * (n_phi + 1) + 1
+    return 2 * (n_rho + 1) + (n_theta + 2) + 2 * (n_phi + 1) + 2
 
 
 @jit
-def trace_span(first, last, origins, directions, rho_edges, rho_sq, rho_kind, theta_edges,
+def trace_span(first, last, origins, directions, t_max, rho_edges, rho_sq, rho_kind, theta_edges,
                theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe,
                phi_kind, times, zones, lookups, cells, t_enter, t_exit, offsets, used, limit):
     """One thread: trace rays first..last-1 in order, appending from segment ``used`` on.
@@ -533,15 +543,15 @@ def trace_span(first, last, origins, directions, rho_edges, rho_sq, rho_kind, th
             rho_edges, rho_sq, rho_kind,
             theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
             phi_edges, phi_tan2, phi_nappe, phi_kind,
-            times, zones, lookups, cells, t_enter, t_exit, used, FULL,
+            t_max[row], times, zones, lookups, cells, t_enter, t_exit, used, FULL,
         )
         offsets[row + 1] = used
     return used, last
 
 
-def _trace_chunks(starts, regions, origins, directions, rho_edges, rho_sq, rho_kind, theta_edges,
-                  theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe,
-                  phi_kind, cells, t_enter, t_exit, offsets):
+def _trace_chunks(starts, regions, origins, directions, t_max, rho_edges, rho_sq, rho_kind,
+                  theta_edges, theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2,
+                  phi_nappe, phi_kind, cells, t_enter, t_exit, offsets):
     """Chunk c traces rays starts[c]..starts[c+1]-1 into regions[c]..regions[c+1]-1.
 
     Returns per chunk the end of its segments and the first row it could not
@@ -556,7 +566,7 @@ def _trace_chunks(starts, regions, origins, directions, rho_edges, rho_sq, rho_k
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
         ends[chunk], reached[chunk] = trace_span(
-            starts[chunk], starts[chunk + 1], origins, directions, rho_edges, rho_sq, rho_kind,
+            starts[chunk], starts[chunk + 1], origins, directions, t_max, rho_edges, rho_sq, rho_kind,
             theta_edges, theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2,
             phi_nappe, phi_kind, times, zones, lookups, cells, t_enter, t_exit, offsets,
             regions[chunk], regions[chunk + 1],
