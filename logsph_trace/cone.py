@@ -186,15 +186,26 @@ def _sample(grid, origin, direction, half_angle, n_rays, pattern, weighting, sig
     return directions, _ray_weights(angles, half_angle, weighting, sigma)
 
 
-def _aggregate(grid, traces, directions, ray_weights):
+def _aggregate(grid, traces, directions, ray_weights, segment_weights=None, normalise=True):
+    """Weighted cells of a cone's traces, ordered by first reach.
+
+    ``segment_weights`` defaults to each ray's weight; ``normalise`` scales the
+    cell weights to sum to 1.
+    """
+    if segment_weights is None:
+        segment_weights = np.repeat(ray_weights, traces.counts)
     j_axis = grid.cell_of(grid.rho_max * 0.5 * directions[0])[1]
     j_shift = (grid.n_theta // 2 - max(int(j_axis), 0)) % grid.n_theta
     cells, weights, t_first = _cone.aggregate(
-        traces.offsets, traces.cells, traces.t_enter, ray_weights, grid.n_rho, grid.n_theta, j_shift
+        traces.offsets, traces.cells, traces.t_enter, segment_weights, grid.n_rho, grid.n_theta,
+        j_shift,
     )
     order = np.argsort(t_first, kind="stable")
+    weights = weights[order]
     total = weights.sum()
-    return cells[order], (weights[order] / total if total > 0 else weights[order]), t_first[order]
+    if normalise and total > 0:
+        weights = weights / total
+    return cells[order], weights, t_first[order]
 
 
 def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibonacci",

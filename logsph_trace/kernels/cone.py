@@ -19,12 +19,14 @@ def _shifted(j, j_shift, n_theta):
 
 
 @jit
-def aggregate(offsets, cells, t_enter, ray_weights, n_rho, n_theta, j_shift):
-    """Per cell: summed weight of the rays crossing it (each ray once), first t.
+def aggregate(offsets, cells, t_enter, segment_weights, n_rho, n_theta, j_shift):
+    """Per cell: summed weight over the rays crossing it (each ray once), first t.
 
     Parameters: CSR ``offsets`` (m + 1,) and ``cells`` (K, 3), ``t_enter`` (K,)
-    of the cone's rays; ``ray_weights`` (m,). Returns (cells (u, 3) int32,
-    weights (u,) float64 unnormalised, t_first (u,) float64), unsorted.
+    of the cone's rays; ``segment_weights`` (K,): what a segment adds to its
+    cell (a ray's weight, or a weighted probability); only a ray's first
+    segment in a cell counts. Returns (cells (u, 3) int32, weights (u,)
+    float64 unnormalised, t_first (u,) float64), unsorted.
 
     Each radial shell gets its own dense (theta, phi) box: at one radius the
     cone's footprint is a compact patch, so the boxes together stay small.
@@ -61,7 +63,7 @@ def aggregate(offsets, cells, t_enter, ray_weights, n_rho, n_theta, j_shift):
             # Branch-free: a ray re-entering a cell counts once; first reach is a min.
             previous = last_ray[box]
             n_unique += previous == -1
-            weight[box] += ray_weights[ray] * (previous != ray)
+            weight[box] += segment_weights[seg] * (previous != ray)
             last_ray[box] = ray
             first[box] = min(first[box], t_enter[seg])
     out_cells = np.empty((n_unique, 3), dtype=np.int32)

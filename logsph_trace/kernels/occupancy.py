@@ -1,0 +1,108 @@
+"""Occupancy kernels (``@jit`` only): integrate a scan, first-occupied probabilities.
+
+Parallel work never shares a write: each thread marks its own row of the
+free/hit flag arrays, and a second ``prange`` over cells combines the rows.
+"""
+
+import numba
+import numpy as np
+from numba import prange
+
+from .._jit import jit
+from .exact import FULL, max_segments, scratch_size, trace_ray
+
+BLOCK = 256
+
+
+def _mark_rays(origins, directions, distances, is_hit, rho_edges, rho_sq, rho_kind, theta_edges,
+               theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe,
+               phi_kind, free_flags, hit_flags):
+    """Trace each sensor ray up to its distance; flag the cells it crosses as free and,
+    for a hit, the cell holding its end point (its last segment) as hit.
+
+    ``free_flags`` and ``hit_flags`` are (threads, n_cells) uint8, one row per thread.
+    """
+    n_rays = origins.shape[0]
+    n_rho = rho_edges.shape[0] - 1
+    n_theta = theta_edges.shape[0] - 1
+    n_phi = phi_edges.shape[0] - 1
+    worst = max_segments(n_rho, n_theta, n_phi)
+    size = scratch_size(n_rho, n_theta, n_phi)
+    for block in prange((n_rays + BLOCK - 1) // BLOCK):
+        thread = numba.get_thread_id()
+        times = np.empty((3, size), dtype=np.float64)
+        zones = np.empty((3, size), dtype=np.int64)
+        lookups = np.empty(8, dtype=np.int64)
+        cells = np.empty((worst, 3), dtype=np.int32)
+        t_enter = np.empty(worst, dtype=np.float64)
+        t_exit = np.empty(worst, dtype=np.float64)
+        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            count = trace_ray(
+                origins[row, 0], origins[row, 1], origins[row, 2],
+                directions[row, 0], directions[row, 1], directions[row, 2],
+                rho_edges, rho_sq, rho_kind,
+                theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
+                phi_edges, phi_tan2, phi_nappe, phi_kind,
+                distances[row], times, zones, lookups, cells, t_enter, t_exit, 0, FULL,
+            )
+            # The end point lies in the last segment's cell when the trace
+            # reaches it inside the region.
+            ends_inside = count > 0 and is_hit[row] and t_exit[count - 1] >= distances[row]
+            free_until = count - 1 if ends_inside else count
+            for seg in range(free_until):
+                flat = (cells[seg, 0] * n_theta + cells[seg, 1]) * n_phi + cells[seg, 2]
+                free_flags[thread, flat] = 1
+            if ends_inside:
+                last = count - 1
+                flat = (cells[last, 0] * n_theta + cells[last, 1]) * n_phi + cells[last, 2]
+                hit_flags[thread, flat] = 1
+
+
+def _apply_flags(log_odds, free_flags, hit_flags, log_hit, log_miss, log_min, log_max):
+    """OctoMap's update, once per cell per scan: a hit wins over a miss; clamped."""
+    threads = free_flags.shape[0]
+    for cell in prange(log_odds.shape[0]):
+        hit = False
+        free = False
+        for thread in range(threads):
+            hit = hit or hit_flags[thread, cell] != 0
+            free = free or free_flags[thread, cell] != 0
+        if hit:
+            log_odds[cell] = min(log_odds[cell] + log_hit, log_max)
+        elif free:
+            log_odds[cell] = max(log_odds[cell] + log_miss, log_min)
+
+
+mark_rays = jit(_mark_rays, parallel=True)
+apply_flags = jit(_apply_flags, parallel=True)
+
+
+@jit
+def first_occupied(offsets, cells, t_exit, probability, n_theta, n_phi, ray_weights,
+                   min_distance):
+    """Per segment: weight x P(its cell is the first occupied cell the ray meets).
+
+    ``probability`` is the flat occupancy. Along a ray, P_first(c) = p_c times
+    the product of (1 - p) over the distinct cells before c; a cell the ray
+    re-enters adds nothing (had it been occupied, the ray would have stopped
+    at the first entry). Segments ending within ``min_distance`` are skipped.
+    """
+    out = np.zeros(cells.shape[0])
+    for ray in range(offsets.shape[0] - 1):
+        clear = 1.0  # probability that nothing so far stopped the gaze
+        for seg in range(offsets[ray], offsets[ray + 1]):
+            if t_exit[seg] <= min_distance:
+                continue
+            seen = False
+            for earlier in range(offsets[ray], seg):
+                if (cells[earlier, 0] == cells[seg, 0] and cells[earlier, 1] == cells[seg, 1]
+                        and cells[earlier, 2] == cells[seg, 2]):
+                    seen = True
+                    break
+            if seen:
+                continue
+            flat = (cells[seg, 0] * n_theta + cells[seg, 1]) * n_phi + cells[seg, 2]
+            p = probability[flat]
+            out[seg] = ray_weights[ray] * p * clear
+            clear *= 1.0 - p
+    return out

@@ -1,0 +1,264 @@
+"""The occupancy map (the paper's BVM, section 3.3) and what a gaze lands on.
+
+:class:`OccupancyGrid` stores log-odds per cell of a :class:`~logsph_trace.Grid`
+and integrates sensor scans as OctoMap does: each ray carves free space up to
+its end point and marks the end cell occupied, every cell updated at most once
+per scan (a hit wins over a miss), log-odds clamped so the map stays able to
+change. :func:`gaze_targets` applies the paper's Fig. 5 rule (cells on the gaze
+ray above a threshold); :func:`fixation_probability` asks which cell the gaze
+actually stops at, so an object hidden behind another is not reported as
+looked at.
+"""
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numba
+import numpy as np
+
+from .api import _check_grid, _vectors, trace_many
+from .cone import _aggregate, _sample
+from .grid import Grid
+from .kernels import occupancy as _kernels
+
+
+def _logit(p):
+    return float(np.log(p / (1.0 - p)))
+
+
+def _probability(name, value, low=0.0, high=1.0):
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a probability, got {value!r}") from None
+    if not (low < number < high):
+        raise ValueError(f"{name} must be in ({low:g}, {high:g}), got {value!r}")
+    return number
+
+
+class OccupancyGrid:
+    """Log-odds occupancy over a grid, updated OctoMap-style.
+
+    Parameters
+    ----------
+    grid : Grid
+    p_hit, p_miss : float
+        Probability a cell is occupied given a ray ended in it (> 0.5), or
+        crossed it (< 0.5). OctoMap's defaults: 0.7 and 0.4.
+    p_min, p_max : float
+        Clamping bounds (OctoMap: 0.1192 and 0.971), so a cell can always
+        change again within a few scans.
+
+    Attributes
+    ----------
+    log_odds : numpy.ndarray, float32, shape ``grid.shape``
+        0 is unknown (p = 0.5). May be given (e.g. a map from elsewhere); its
+        shape must be the grid's.
+    """
+
+    def __init__(self, grid, p_hit=0.7, p_miss=0.4, p_min=0.1192, p_max=0.971, log_odds=None):
+        _check_grid(grid)
+        self.grid = grid
+        self.p_hit = _probability("p_hit", p_hit, 0.5, 1.0)
+        self.p_miss = _probability("p_miss", p_miss, 0.0, 0.5)
+        self.p_min = _probability("p_min", p_min, 0.0, 0.5)
+        self.p_max = _probability("p_max", p_max, 0.5, 1.0)
+        self.log_odds = np.zeros(grid.shape, dtype=np.float32)
+        if log_odds is not None:
+            log_odds = np.asarray(log_odds, dtype=np.float32)
+            if log_odds.shape != grid.shape:
+                raise ValueError(
+                    f"log_odds has shape {log_odds.shape} but the grid has shape {grid.shape}"
+                )
+            if not np.all(np.isfinite(log_odds)):
+                raise ValueError("log_odds must be finite")
+            self.log_odds[...] = log_odds
+
+    def __repr__(self):
+        occupied = int(np.count_nonzero(self.log_odds > 0))
+        return f"OccupancyGrid({self.grid}, {occupied} cells above p = 0.5)"
+
+    @property
+    def probability(self):
+        """Occupancy probability per cell, float64, shape ``grid.shape``."""
+        return 1.0 / (1.0 + np.exp(-self.log_odds.astype(np.float64)))
+
+    def occupied(self, threshold=0.6):
+        """Cells whose probability exceeds ``threshold``, shape (u, 3)."""
+        threshold = _probability("threshold", threshold)
+        return np.argwhere(self.log_odds > _logit(threshold)).astype(np.int32)
+
+    def integrate(self, points, sensor_origin, max_range=None):
+        """Integrate one scan: free space along each sensor ray, its end cell occupied.
+
+        Parameters
+        ----------
+        points : array_like, shape (M, 3)
+            End points of the sensor rays (a point cloud), in the grid's frame.
+        sensor_origin : array_like, shape (3,)
+            Where the rays start.
+        max_range : float, optional
+            Points farther than this carve free space up to ``max_range`` and
+            mark nothing occupied (OctoMap's rule for unreliable far returns).
+
+        Returns
+        -------
+        self
+        """
+        points = _vectors("points", points)
+        origin = _vectors("sensor_origin", sensor_origin)[0]
+        offsets = points - origin
+        distances = np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
+        keep = distances > 0.0  # a point at the sensor is no ray
+        offsets, distances = offsets[keep], distances[keep]
+        is_hit = np.ones(distances.shape[0], dtype=np.bool_)
+        if max_range is not None:
+            max_range = float(max_range)
+            if not (np.isfinite(max_range) and max_range > 0):
+                raise ValueError(f"max_range must be a positive number, got {max_range!r}")
+            is_hit = distances <= max_range
+            distances = np.minimum(distances, max_range)
+        directions = np.ascontiguousarray(offsets / distances[:, None])
+        origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
+        n_cells = int(np.prod(self.grid.shape))
+        threads = numba.get_num_threads()
+        free_flags = np.zeros((threads, n_cells), dtype=np.uint8)
+        hit_flags = np.zeros((threads, n_cells), dtype=np.uint8)
+        _kernels.mark_rays(origins, directions, np.ascontiguousarray(distances), is_hit,
+                           *self.grid.kernel_args(), free_flags, hit_flags)
+        _kernels.apply_flags(self.log_odds.reshape(-1), free_flags, hit_flags,
+                             _logit(self.p_hit), _logit(self.p_miss),
+                             _logit(self.p_min), _logit(self.p_max))
+        return self
+
+    def decay(self, factor):
+        """Fade the map towards unknown: ``log_odds *= factor`` (a short-term memory).
+
+        ``factor`` in [0, 1]: 1 keeps everything, 0 forgets everything.
+        """
+        try:
+            factor = float(factor)
+        except (TypeError, ValueError):
+            raise ValueError(f"factor must be in [0, 1], got {factor!r}") from None
+        if not 0.0 <= factor <= 1.0:
+            raise ValueError(f"factor must be in [0, 1], got {factor!r}")
+        self.log_odds *= np.float32(factor)
+        return self
+
+    def save(self, path):
+        """Write the map and its grid to a ``.npz`` file."""
+        grid = self.grid
+        np.savez_compressed(
+            Path(path), log_odds=self.log_odds, rho_edges=grid.rho_edges,
+            theta_edges=grid.theta_edges, phi_edges=grid.phi_edges,
+            kinds=np.array([grid.rho_kind, grid.theta_kind, grid.phi_kind]),
+            spacing=np.array(grid.spacing),
+            probabilities=np.array([self.p_hit, self.p_miss, self.p_min, self.p_max]),
+        )
+
+    @classmethod
+    def load(cls, path):
+        """Read a map written by :meth:`save`."""
+        with np.load(Path(path)) as data:
+            grid = Grid.__new__(Grid)
+            kinds = [int(k) for k in data["kinds"]]
+            grid._setup(data["rho_edges"].copy(), data["theta_edges"].copy(),
+                        data["phi_edges"].copy(), str(data["spacing"]), *kinds)
+            return cls(grid, *[float(p) for p in data["probabilities"]], log_odds=data["log_odds"])
+
+
+@dataclass(frozen=True)
+class GazeTargets:
+    """Cells along a gaze, in order of distance, with a value each."""
+
+    cells: np.ndarray
+    values: np.ndarray
+    t_enter: np.ndarray
+
+    def __len__(self):
+        return self.cells.shape[0]
+
+
+def _check_occupancy(occupancy):
+    if not isinstance(occupancy, OccupancyGrid):
+        raise ValueError(f"occupancy must be an OccupancyGrid, got {type(occupancy).__name__}")
+
+
+def gaze_targets(occupancy, origin, direction, threshold=0.6):
+    """The paper's Fig. 5 rule: cells on the gaze ray whose occupancy exceeds ``threshold``.
+
+    Returns
+    -------
+    GazeTargets
+        ``cells`` (u, 3), ``values`` their probabilities, ``t_enter`` the distance
+        at which the gaze first enters each, in order of distance.
+    """
+    _check_occupancy(occupancy)
+    threshold = _probability("threshold", threshold)
+    ray = trace_many(occupancy.grid, origin, direction, parallel=False)[0]
+    cells = ray.unique()
+    first = np.array([ray.t_enter[np.flatnonzero(np.all(ray.cells == c, axis=1))[0]]
+                      for c in cells]) if len(cells) else np.empty(0)
+    probability = occupancy.probability[tuple(cells.T)] if len(cells) else np.empty(0)
+    above = probability > threshold
+    return GazeTargets(cells[above], probability[above], first[above])
+
+
+def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=None,
+                         pattern="fibonacci", weighting="gaussian", sigma=None,
+                         unknown=0.0, min_distance=0.0, dense=False):
+    """Probability that each cell is the first occupied cell the gaze meets.
+
+    For one ray, ``P(c) = p_c * prod(1 - p)`` over the cells in front of ``c``;
+    for a cone (``half_angle > 0``), summed over its rays by weight. An object
+    hidden behind another gets little: the gaze stops at the first one.
+
+    Parameters
+    ----------
+    occupancy : OccupancyGrid
+    origin, direction : array_like, shape (3,)
+    half_angle, n_rays, pattern, weighting, sigma :
+        The gaze cone, as for :func:`~logsph_trace.trace_cone`; 0 is one ray.
+    unknown : float
+        Occupancy assumed for cells never observed (log-odds exactly 0). The
+        default 0 lets the gaze pass through unobserved space instead of
+        stopping there with probability 1/2.
+    min_distance : float
+        Cells the gaze leaves within this distance of its origin are ignored
+        (the person's own head, hair, glasses in the map).
+    dense : bool
+        Return an array of shape ``grid.shape`` instead of sparse results.
+
+    Returns
+    -------
+    GazeTargets or numpy.ndarray
+        Sparse: cells with a non-zero probability, most probable first
+        (``t_enter`` is where the gaze first reaches each). Dense: the map.
+    """
+    _check_occupancy(occupancy)
+    grid = occupancy.grid
+    unknown = float(unknown)
+    if not 0.0 <= unknown <= 1.0:
+        raise ValueError(f"unknown must be a probability in [0, 1], got {unknown!r}")
+    min_distance = float(min_distance)
+    if not (np.isfinite(min_distance) and min_distance >= 0.0):
+        raise ValueError(f"min_distance must be >= 0, got {min_distance!r}")
+    origin = _vectors("origin", origin)[0]
+    directions, ray_weights = _sample(grid, origin, direction, half_angle, n_rays, pattern,
+                                      weighting, sigma)
+    traces = trace_many(grid, np.broadcast_to(origin, directions.shape), directions)
+    probability = occupancy.probability.reshape(-1)
+    probability[occupancy.log_odds.reshape(-1) == 0] = unknown
+    segment_values = _kernels.first_occupied(
+        traces.offsets, traces.cells, traces.t_exit, probability, grid.n_theta, grid.n_phi,
+        ray_weights, min_distance,
+    )
+    cells, values, t_first = _aggregate(grid, traces, directions, ray_weights,
+                                        segment_weights=segment_values, normalise=False)
+    if dense:
+        out = np.zeros(grid.shape)
+        out[tuple(cells.T)] = values
+        return out
+    keep = values > 0
+    order = np.argsort(-values[keep], kind="stable")
+    return GazeTargets(cells[keep][order], values[keep][order], t_first[keep][order])

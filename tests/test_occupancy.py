@@ -1,0 +1,130 @@
+"""The occupancy map, gaze targets and fixation probability."""
+
+import numba
+import numpy as np
+import pytest
+
+import logsph_trace as lt
+from logsph_trace.occupancy import OccupancyGrid, fixation_probability, gaze_targets
+
+GRID = lt.Grid(0.3, 10.0, 32, 90, 45)
+
+
+def _wall(z=4.0, n=120):
+    xs, ys = np.meshgrid(np.linspace(-2, 2, n), np.linspace(-1, 2, n))
+    return np.c_[xs.ravel(), ys.ravel(), np.full(xs.size, z)]
+
+
+def test_integrate_recovers_surfaces_free_space_and_unknown():
+    occupancy = OccupancyGrid(GRID)
+    wall = _wall()
+    occupancy.integrate(wall, [0.0, 0.0, 0.0])
+    p = occupancy.probability
+    hit = GRID.cell_of(wall)
+    assert np.all(p[tuple(hit.T)] > 0.5)  # the surface is occupied
+    in_front = GRID.cell_of(0.6 * wall)
+    in_front = in_front[~np.any(np.all(in_front[:, None] == hit[None], axis=2), axis=1)]
+    assert np.all(p[tuple(in_front.T)] < 0.5)  # the space the rays crossed is free
+    behind = GRID.cell_of(1.5 * wall)
+    assert np.all(occupancy.log_odds[tuple(behind.T)] == 0)  # never seen: unknown
+
+
+def test_one_update_per_cell_per_scan_hit_wins_and_clamping():
+    occupancy = OccupancyGrid(GRID)
+    # Two rays: one ends in a cell the other crosses.
+    points = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 4.0]])
+    occupancy.integrate(points, [0.0, 0.0, 0.0])
+    cell = tuple(GRID.cell_of(points[0]))
+    assert occupancy.log_odds[cell] == pytest.approx(np.log(0.7 / 0.3), rel=1e-6)
+    for _ in range(50):
+        occupancy.integrate(points, [0.0, 0.0, 0.0])
+    assert occupancy.probability[cell] == pytest.approx(0.971, rel=1e-5)
+    free = tuple(GRID.cell_of([0.0, 0.0, 1.0]))
+    assert occupancy.probability[free] == pytest.approx(0.1192, rel=1e-4)
+
+
+def test_max_range_carves_without_marking():
+    occupancy = OccupancyGrid(GRID)
+    occupancy.integrate([[0.0, 0.0, 6.0]], [0.0, 0.0, 0.0], max_range=3.0)
+    assert occupancy.log_odds[tuple(GRID.cell_of([0.0, 0.0, 6.0]))] == 0
+    assert occupancy.log_odds[tuple(GRID.cell_of([0.0, 0.0, 2.0]))] < 0
+    assert np.all(occupancy.log_odds <= 0)
+
+
+def test_integrate_is_the_same_on_one_thread_and_many():
+    wall = _wall(3.0)
+    sensor = [0.3, 1.2, -0.4]
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = OccupancyGrid(GRID).integrate(wall, sensor)
+        numba.set_num_threads(before)
+        many = OccupancyGrid(GRID).integrate(wall, sensor)
+    finally:
+        numba.set_num_threads(before)
+    np.testing.assert_array_equal(one.log_odds, many.log_odds)
+
+
+def test_decay_and_save_load(tmp_path):
+    occupancy = OccupancyGrid(GRID).integrate(_wall(), [0.0, 0.0, 0.0])
+    path = tmp_path / "map.npz"
+    occupancy.save(path)
+    loaded = OccupancyGrid.load(path)
+    assert loaded.grid == GRID and loaded.grid.spacing == "log"
+    np.testing.assert_array_equal(loaded.log_odds, occupancy.log_odds)
+    before = occupancy.log_odds.copy()
+    occupancy.decay(0.5)
+    np.testing.assert_allclose(occupancy.log_odds, 0.5 * before)
+    with pytest.raises(ValueError, match=r"factor must be in \[0, 1\]"):
+        occupancy.decay(1.5)
+
+
+def test_gaze_targets_in_order_of_distance():
+    occupancy = OccupancyGrid(GRID)
+    near, far = GRID.cell_of([0.0, 0.0, 2.0]), GRID.cell_of([0.0, 0.0, 5.0])
+    occupancy.log_odds[tuple(near)] = 3.0
+    occupancy.log_odds[tuple(far)] = 3.0
+    targets = gaze_targets(occupancy, [0.05, 0.05, 0.5], [0.0, 0.0, 1.0])
+    np.testing.assert_array_equal(targets.cells, [near, far])
+    assert np.all(np.diff(targets.t_enter) > 0) and np.all(targets.values > 0.6)
+    assert len(gaze_targets(occupancy, [0.05, 0.05, 0.5], [0.0, 0.0, 1.0], threshold=0.99)) == 0
+
+
+def test_an_occluded_object_is_less_likely_looked_at_than_its_occluder():
+    occupancy = OccupancyGrid(GRID)
+    occluder, hidden = GRID.cell_of([0.0, 0.0, 2.0]), GRID.cell_of([0.0, 0.0, 5.0])
+    occupancy.log_odds[tuple(occluder)] = 2.0
+    occupancy.log_odds[tuple(hidden)] = 2.0
+    for half_angle in (0.0, np.radians(2)):
+        result = fixation_probability(occupancy, [0.05, 0.05, 0.5], [0.0, 0.0, 1.0],
+                                      half_angle=half_angle, n_rays=50, dense=True)
+        assert result[tuple(occluder)] > result[tuple(hidden)] > 0
+        assert result.sum() <= 1.0 + 1e-12
+    one_ray = fixation_probability(occupancy, [0.05, 0.05, 0.5], [0.0, 0.0, 1.0])
+    p = 1 / (1 + np.exp(-2.0))
+    assert one_ray.values[0] == pytest.approx(p)
+    assert one_ray.values[1] == pytest.approx(p * (1 - p))
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda o: o.integrate([[np.nan, 0, 1]], [0, 0, 0]), "points must be finite"),
+        (lambda o: o.integrate(np.zeros((3, 2)), [0, 0, 0]), r"points must have shape \(m, 3\)"),
+        (lambda o: o.integrate([[0, 0, 1]], [0, 0]), "sensor_origin must have shape"),
+        (lambda o: o.integrate([[0, 0, 1]], [0, 0, 0], max_range=-1),
+         "max_range must be a positive number"),
+        (lambda o: OccupancyGrid(GRID, p_hit=0.4), r"p_hit must be in \(0.5, 1\)"),
+        (lambda o: OccupancyGrid(GRID, p_miss=0.6), r"p_miss must be in \(0, 0.5\)"),
+        (lambda o: OccupancyGrid(GRID, log_odds=np.zeros((2, 2, 2))), "log_odds has shape"),
+        (lambda o: OccupancyGrid("grid"), "grid must be a logsph_trace.Grid"),
+        (lambda o: gaze_targets(GRID, [0, 0, 0], [0, 0, 1]), "occupancy must be an OccupancyGrid"),
+        (lambda o: fixation_probability(o, [0, 0, 0], [0, 0, 1], half_angle=2.0),
+         r"half_angle must be in \[0, pi/2\)"),
+        (lambda o: fixation_probability(o, [0, 0, 0], [0, 0, 1], unknown=2.0),
+         "unknown must be a probability"),
+    ],
+)
+def test_bad_occupancy_input(call, match):
+    with pytest.raises(ValueError, match=match):
+        call(OccupancyGrid(GRID))
