@@ -107,10 +107,11 @@ class OccupancyGrid:
         """
         points = _vectors("points", points)
         origin = _vectors("sensor_origin", sensor_origin)[0]
-        offsets = points - origin
+        offsets = points - origin if np.any(origin) else points
         distances = np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
-        keep = distances > 0.0  # a point at the sensor is no ray
-        offsets, distances = offsets[keep], distances[keep]
+        if not np.all(distances > 0.0):  # a point at the sensor is no ray
+            keep = distances > 0.0
+            offsets, distances = offsets[keep], distances[keep]
         is_hit = np.ones(distances.shape[0], dtype=np.bool_)
         if max_range is not None:
             max_range = float(max_range)
@@ -118,17 +119,27 @@ class OccupancyGrid:
                 raise ValueError(f"max_range must be a positive number, got {max_range!r}")
             is_hit = distances <= max_range
             distances = np.minimum(distances, max_range)
+        grid = self.grid
+        n_cells = int(np.prod(grid.shape))
+        threads = numba.get_num_threads()
+        hit_flags = np.zeros((threads, n_cells), dtype=np.uint8)
+        update = (_logit(self.p_hit), _logit(self.p_miss), _logit(self.p_min), _logit(self.p_max))
+        distances = np.ascontiguousarray(distances)
+        if not np.any(origin):
+            # The sensor at the grid's centre (the egocentric case): radial rays.
+            free_extent = np.zeros((threads, grid.n_theta * grid.n_phi), dtype=np.int64)
+            _kernels.mark_radial(np.ascontiguousarray(offsets), distances, is_hit,
+                                 grid.rho_edges, grid.rho_kind, grid.theta_edges, grid.theta_kind,
+                                 grid.phi_edges, grid.phi_kind, free_extent, hit_flags)
+            _kernels.apply_radial(self.log_odds.reshape(-1), free_extent, hit_flags,
+                                  grid.n_theta, grid.n_phi, *update)
+            return self
         directions = np.ascontiguousarray(offsets / distances[:, None])
         origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
-        n_cells = int(np.prod(self.grid.shape))
-        threads = numba.get_num_threads()
         free_flags = np.zeros((threads, n_cells), dtype=np.uint8)
-        hit_flags = np.zeros((threads, n_cells), dtype=np.uint8)
-        _kernels.mark_rays(origins, directions, np.ascontiguousarray(distances), is_hit,
-                           *self.grid.kernel_args(), free_flags, hit_flags)
-        _kernels.apply_flags(self.log_odds.reshape(-1), free_flags, hit_flags,
-                             _logit(self.p_hit), _logit(self.p_miss),
-                             _logit(self.p_min), _logit(self.p_max))
+        _kernels.mark_rays(origins, directions, distances, is_hit, *grid.kernel_args(),
+                           free_flags, hit_flags)
+        _kernels.apply_flags(self.log_odds.reshape(-1), free_flags, hit_flags, *update)
         return self
 
     def decay(self, factor):

@@ -128,3 +128,26 @@ def test_an_occluded_object_is_less_likely_looked_at_than_its_occluder():
 def test_bad_occupancy_input(call, match):
     with pytest.raises(ValueError, match=match):
         call(OccupancyGrid(GRID))
+
+
+def test_radial_fast_path_equals_the_general_traversal():
+    from logsph_trace.kernels import occupancy as kernels
+    from logsph_trace.occupancy import _logit
+
+    rng = np.random.default_rng(61)
+    points = rng.normal(size=(4000, 3)) * 4.0
+    points[:50] *= 5.0  # some beyond rho_max
+    fast = OccupancyGrid(GRID).integrate(points, [0.0, 0.0, 0.0], max_range=12.0)
+    general = OccupancyGrid(GRID)
+    distances = np.linalg.norm(points, axis=1)
+    is_hit = distances <= 12.0
+    distances = np.minimum(distances, 12.0)
+    threads = numba.get_num_threads()
+    n_cells = int(np.prod(GRID.shape))
+    free_flags = np.zeros((threads, n_cells), dtype=np.uint8)
+    hit_flags = np.zeros((threads, n_cells), dtype=np.uint8)
+    kernels.mark_rays(np.zeros_like(points), points / np.linalg.norm(points, axis=1)[:, None],
+                      distances, is_hit, *GRID.kernel_args(), free_flags, hit_flags)
+    kernels.apply_flags(general.log_odds.reshape(-1), free_flags, hit_flags,
+                        *(_logit(p) for p in (0.7, 0.4, 0.1192, 0.971)))
+    np.testing.assert_array_equal(fast.log_odds, general.log_odds)

@@ -10,6 +10,7 @@ from numba import prange
 
 from .._jit import jit
 from .exact import FULL, max_segments, scratch_size, trace_ray
+from .locate import locate, phi_zone, theta_zone
 
 BLOCK = 256
 
@@ -106,3 +107,60 @@ def first_occupied(offsets, cells, t_exit, probability, n_theta, n_phi, ray_weig
             out[seg] = ray_weights[ray] * p * clear
             clear *= 1.0 - p
     return out
+
+
+def _mark_radial(points, distances, is_hit, rho_edges, rho_kind, theta_edges, theta_kind,
+                 phi_edges, phi_kind, free_extent, hit_flags):
+    """The sensor at the grid's origin: every ray is radial, so its cells are one
+    (theta, phi) column, free up to the shell holding its end point.
+
+    ``free_extent`` (threads, n_theta * n_phi) int64 records, per thread and
+    column, how many shells from the centre are free; ``hit_flags`` as in
+    ``_mark_rays``. Three lookups per ray instead of a traversal.
+    """
+    n_rays = points.shape[0]
+    n_rho = rho_edges.shape[0] - 1
+    n_theta = theta_edges.shape[0] - 1
+    n_phi = phi_edges.shape[0] - 1
+    for block in prange((n_rays + BLOCK - 1) // BLOCK):
+        thread = numba.get_thread_id()
+        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            x = points[row, 0]
+            y = points[row, 1]
+            z = points[row, 2]
+            j = theta_zone(x, z, theta_edges, theta_kind)
+            k = phi_zone(x, y, z, phi_edges, phi_kind)
+            if j >= n_theta or k < 0 or k >= n_phi:
+                continue  # outside the angular range: the ray never enters the region
+            shell = locate(distances[row], rho_edges, rho_kind)  # -1: gap, n_rho: beyond
+            column = j * n_phi + k
+            hit = is_hit[row] and 0 <= shell < n_rho
+            free = min(shell, n_rho) if hit else min(shell + 1, n_rho)
+            if free > free_extent[thread, column]:
+                free_extent[thread, column] = free
+            if hit:
+                hit_flags[thread, (shell * n_theta + j) * n_phi + k] = 1
+
+
+def _apply_radial(log_odds, free_extent, hit_flags, n_theta, n_phi, log_hit, log_miss, log_min,
+                  log_max):
+    """``_apply_flags`` for the radial case: cell (i, j, k) is free if i is below a
+    thread's free extent of its column. Loops over shells and columns (no division)."""
+    threads = free_extent.shape[0]
+    n_columns = n_theta * n_phi
+    for shell in prange(log_odds.shape[0] // n_columns):
+        for column in range(n_columns):
+            cell = shell * n_columns + column
+            hit = False
+            free = False
+            for thread in range(threads):
+                hit = hit or hit_flags[thread, cell] != 0
+                free = free or shell < free_extent[thread, column]
+            if hit:
+                log_odds[cell] = min(log_odds[cell] + log_hit, log_max)
+            elif free:
+                log_odds[cell] = max(log_odds[cell] + log_miss, log_min)
+
+
+mark_radial = jit(_mark_radial, parallel=True)
+apply_radial = jit(_apply_radial, parallel=True)
