@@ -63,3 +63,13 @@ def test_gaze_cone_1000_rays(benchmark):
     benchmark.group = "gaze cone, 1,000 rays, 64 x 360 x 180, all threads"
     cone = benchmark(lt.trace_cone, grid, [0.4, 1.5, 1.2], [-0.1, -0.4, 1.0], 0.0873, n_rays=1000)
     benchmark.extra_info["cells"] = len(cone)
+
+
+def test_integrate_depth_image(benchmark):
+    from logsph_trace.scene import table_scene
+
+    grid = lt.Grid(0.3, 10.0, 64, 360, 180)
+    points, _, _ = table_scene()[0].depth_points()
+    occupancy = lt.OccupancyGrid(grid)
+    benchmark.group = "occupancy: 640 x 480 depth image into 64 x 360 x 180, all threads"
+    benchmark(occupancy.integrate, points, [0.0, 0.0, 0.0])

@@ -192,13 +192,13 @@ def _aggregate(grid, traces, directions, ray_weights, segment_weights=None, norm
     ``segment_weights`` defaults to each ray's weight; ``normalise`` scales the
     cell weights to sum to 1.
     """
-    if segment_weights is None:
-        segment_weights = np.repeat(ray_weights, traces.counts)
+    per_segment = segment_weights is not None
     j_axis = grid.cell_of(grid.rho_max * 0.5 * directions[0])[1]
     j_shift = (grid.n_theta // 2 - max(int(j_axis), 0)) % grid.n_theta
     cells, weights, t_first = _cone.aggregate(
-        traces.offsets, traces.cells, traces.t_enter, segment_weights, grid.n_rho, grid.n_theta,
-        j_shift,
+        traces.offsets, traces.cells, traces.t_enter,
+        segment_weights if per_segment else ray_weights, per_segment,
+        grid.n_rho, grid.n_theta, j_shift,
     )
     order = np.argsort(t_first, kind="stable")
     weights = weights[order]

@@ -217,7 +217,7 @@ def gaze_targets(occupancy, origin, direction, threshold=0.6):
 
 def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=None,
                          pattern="fibonacci", weighting="gaussian", sigma=None,
-                         unknown=0.0, min_distance=0.0, dense=False):
+                         unknown=0.0, free_below=0.5, min_distance=0.0, dense=False):
     """Probability that each cell is the first occupied cell the gaze meets.
 
     For one ray, ``P(c) = p_c * prod(1 - p)`` over the cells in front of ``c``;
@@ -234,6 +234,12 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
         Occupancy assumed for cells never observed (log-odds exactly 0). The
         default 0 lets the gaze pass through unobserved space instead of
         stopping there with probability 1/2.
+    free_below : float
+        Cells the map believes free (probability below this) do not stop the
+        gaze. An OctoMap-style map keeps free cells at p = 0.12 to 0.4, never
+        0, and with the literal formula (``free_below=0``) the dozen free
+        cells in front of an object would absorb most of the gaze before it
+        gets there.
     min_distance : float
         Cells the gaze leaves within this distance of its origin are ignored
         (the person's own head, hair, glasses in the map).
@@ -258,7 +264,11 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
     directions, ray_weights = _sample(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
     traces = trace_many(grid, np.broadcast_to(origin, directions.shape), directions)
+    free_below = float(free_below)
+    if not 0.0 <= free_below <= 1.0:
+        raise ValueError(f"free_below must be a probability in [0, 1], got {free_below!r}")
     probability = occupancy.probability.reshape(-1)
+    probability[probability < free_below] = 0.0
     probability[occupancy.log_odds.reshape(-1) == 0] = unknown
     segment_values = _kernels.first_occupied(
         traces.offsets, traces.cells, traces.t_exit, probability, grid.n_theta, grid.n_phi,

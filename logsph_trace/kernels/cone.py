@@ -19,13 +19,13 @@ def _shifted(j, j_shift, n_theta):
 
 
 @jit
-def aggregate(offsets, cells, t_enter, segment_weights, n_rho, n_theta, j_shift):
+def aggregate(offsets, cells, t_enter, weights, per_segment, n_rho, n_theta, j_shift):
     """Per cell: summed weight over the rays crossing it (each ray once), first t.
 
     Parameters: CSR ``offsets`` (m + 1,) and ``cells`` (K, 3), ``t_enter`` (K,)
-    of the cone's rays; ``segment_weights`` (K,): what a segment adds to its
-    cell (a ray's weight, or a weighted probability); only a ray's first
-    segment in a cell counts. Returns (cells (u, 3) int32, weights (u,)
+    of the cone's rays; ``weights``: what a segment adds to its cell -- per
+    segment (K,) if ``per_segment`` (a weighted probability), else per ray
+    (m,) (the ray's weight); only a ray's first segment in a cell counts. Returns (cells (u, 3) int32, weights (u,)
     float64 unnormalised, t_first (u,) float64), unsorted.
 
     Each radial shell gets its own dense (theta, phi) box: at one radius the
@@ -63,7 +63,8 @@ def aggregate(offsets, cells, t_enter, segment_weights, n_rho, n_theta, j_shift)
             # Branch-free: a ray re-entering a cell counts once; first reach is a min.
             previous = last_ray[box]
             n_unique += previous == -1
-            weight[box] += segment_weights[seg] * (previous != ray)
+            value = weights[seg] if per_segment else weights[ray]
+            weight[box] += value * (previous != ray)
             last_ray[box] = ray
             first[box] = min(first[box], t_enter[seg])
     out_cells = np.empty((n_unique, 3), dtype=np.int32)
