@@ -1,4 +1,4 @@
-"""The README's examples run as written (the cone example reuses the first one's names)."""
+"""The README's examples run as written (later ones reuse the first one's names)."""
 
 import re
 from pathlib import Path
@@ -10,9 +10,13 @@ def test_readme_examples_run(capsys):
     text = README.read_text()
     example = re.search(r"## Example\n\n```python\n(.*?)```", text, re.S).group(1)
     cone = re.search(r"## Gaze cones\n\n.*?```python\n(.*?)```", text, re.S).group(1)
+    occupancy = re.search(r"## Occupancy and what a person looks at\n\n```python\n(.*?)```",
+                          text, re.S).group(1)
     names = {}
     exec(compile(example, "README.md example", "exec"), names)
     exec(compile(cone, "README.md gaze cone example", "exec"), names)
+    exec(compile(occupancy, "README.md occupancy example", "exec"), names)
     out = capsys.readouterr().out
     assert "cells; the first five:" in out and "cell (" in out
     assert abs(names["cone"].weights.sum() - 1.0) < 1e-12
+    assert len(names["seen"]) > 0 and len(names["looked_at"]) > 0
