@@ -7,17 +7,14 @@ all threads (parallel=True) and aggregated into weighted cells. Prints the
 best and median of 50 calls and writes bench/results/cone.json and cone.md.
 """
 
-import json
-import sys
 import time
-from pathlib import Path
 
 import numba
 import numpy as np
 
 import logsph_trace as lt
+from bench.workload import write_results
 
-RESULTS = Path(__file__).resolve().parent / "results"
 ORIGIN = (0.4, 1.5, 1.2)
 GAZE = (-0.1, -0.4, 1.0)
 
@@ -49,14 +46,8 @@ def main(argv=None):
     for r in rows:
         lines.append(f"| {r['half_angle_deg']:g} deg | {r['n_rays']} ({r['n_rays_rule']}) "
                      f"| {r['cells']} | {r['segments']} | {r['best_ms']:.2f} | {r['median_ms']:.2f} |")
-    text = "\n".join(lines)
-    print(text)
-    command = ("python -m bench.cone " + " ".join(argv if argv is not None else sys.argv[1:])).strip()
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "cone.json").write_text(json.dumps({
-        "command": command, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "threads": numba.get_num_threads(), "rows": rows}, indent=2) + "\n")
-    (RESULTS / "cone.md").write_text(f"`{command}`\n\n{text}\n")
+    write_results("cone", argv, "\n".join(lines),
+                  {"threads": numba.get_num_threads(), "rows": rows})
 
 
 if __name__ == "__main__":

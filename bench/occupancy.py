@@ -8,18 +8,15 @@ radial rays) and 10 cm off it (general traversal), all threads, best and
 median of 10 scans. Writes bench/results/occupancy.json and occupancy.md.
 """
 
-import json
-import sys
 import time
-from pathlib import Path
 
 import numba
 import numpy as np
 
 import logsph_trace as lt
+from bench.workload import write_results
 from logsph_trace.scene import table_scene
 
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def main(argv=None):
@@ -42,14 +39,8 @@ def main(argv=None):
              "10 scans", "", "| sensor | points | best (ms) | median (ms) |", "|---|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['sensor']} | {r['points']:,} | {r['best_ms']:.1f} | {r['median_ms']:.1f} |")
-    text = "\n".join(lines)
-    print(text)
-    command = ("python -m bench.occupancy " + " ".join(argv if argv is not None else sys.argv[1:])).strip()
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "occupancy.json").write_text(json.dumps({
-        "command": command, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "threads": numba.get_num_threads(), "rows": rows}, indent=2) + "\n")
-    (RESULTS / "occupancy.md").write_text(f"`{command}`\n\n{text}\n")
+    write_results("occupancy", argv, "\n".join(lines),
+                  {"threads": numba.get_num_threads(), "rows": rows})
 
 
 if __name__ == "__main__":

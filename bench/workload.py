@@ -45,3 +45,19 @@ def best_time(func, repeats):
         result = func()
         best = min(best, time.perf_counter() - start)
     return best, result
+
+
+def write_results(name, argv, text, record):
+    """Print ``text`` and write bench/results/<name>.json (``record`` plus the
+    command and date) and <name>.md (the command, then ``text``)."""
+    import json
+    import sys
+    from pathlib import Path
+
+    results = Path(__file__).resolve().parent / "results"
+    command = (f"python -m bench.{name} " + " ".join(argv if argv is not None else sys.argv[1:])).strip()
+    print(text)
+    results.mkdir(parents=True, exist_ok=True)
+    stamped = {"command": command, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), **record}
+    (results / f"{name}.json").write_text(json.dumps(stamped, indent=2) + "\n")
+    (results / f"{name}.md").write_text(f"`{command}`\n\n{text}\n")

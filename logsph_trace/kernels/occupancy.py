@@ -59,6 +59,15 @@ def _mark_rays(origins, directions, distances, is_hit, rho_edges, rho_sq, rho_ki
                 hit_flags[thread, flat] = 1
 
 
+@jit
+def _update(log_odds, cell, hit, free, log_hit, log_miss, log_min, log_max):
+    """OctoMap's update of one cell: a hit wins over a miss; clamped."""
+    if hit:
+        log_odds[cell] = min(log_odds[cell] + log_hit, log_max)
+    elif free:
+        log_odds[cell] = max(log_odds[cell] + log_miss, log_min)
+
+
 def _apply_flags(log_odds, free_flags, hit_flags, log_hit, log_miss, log_min, log_max):
     """OctoMap's update, once per cell per scan: a hit wins over a miss; clamped."""
     threads = free_flags.shape[0]
@@ -68,10 +77,7 @@ def _apply_flags(log_odds, free_flags, hit_flags, log_hit, log_miss, log_min, lo
         for thread in range(threads):
             hit = hit or hit_flags[thread, cell] != 0
             free = free or free_flags[thread, cell] != 0
-        if hit:
-            log_odds[cell] = min(log_odds[cell] + log_hit, log_max)
-        elif free:
-            log_odds[cell] = max(log_odds[cell] + log_miss, log_min)
+        _update(log_odds, cell, hit, free, log_hit, log_miss, log_min, log_max)
 
 
 mark_rays = jit(_mark_rays, parallel=True)
@@ -156,10 +162,7 @@ def _apply_radial(log_odds, free_extent, hit_flags, n_theta, n_phi, log_hit, log
             for thread in range(threads):
                 hit = hit or hit_flags[thread, cell] != 0
                 free = free or shell < free_extent[thread, column]
-            if hit:
-                log_odds[cell] = min(log_odds[cell] + log_hit, log_max)
-            elif free:
-                log_odds[cell] = max(log_odds[cell] + log_miss, log_min)
+            _update(log_odds, cell, hit, free, log_hit, log_miss, log_min, log_max)
 
 
 mark_radial = jit(_mark_radial, parallel=True)
