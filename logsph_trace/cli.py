@@ -1,0 +1,292 @@
+"""The ``logsph-trace`` command line.
+
+    logsph-trace demo
+    logsph-trace trace --origin 0 2 2 --direction -0.3 -0.01 0 [--cone 5] [--format table]
+    logsph-trace trace --rays rays.npy --out traces.npz
+    logsph-trace bench [--quick]
+
+Errors (bad arguments, unreadable files, invalid geometry) are one line on
+stderr and exit status 2, never a traceback.
+"""
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+OUT_DIR = Path("logsph-trace-out")
+CHUNK_RAYS = 65_536  # rays per batch chunk: bounds the memory of a large batch
+
+
+class CliError(Exception):
+    """An error to report in one line."""
+
+
+def _grid(args):
+    from .grid import Grid
+
+    theta = tuple(np.radians(args.theta_range))
+    phi = tuple(np.radians(args.phi_range))
+    return Grid(args.rho[0], args.rho[1], args.cells[0], args.cells[1], args.cells[2],
+                theta_range=theta, phi_range=phi, spacing=args.spacing)
+
+
+def _add_grid_options(parser):
+    grid = parser.add_argument_group("grid (default: the paper's worked example, decimetres)")
+    grid.add_argument("--rho", nargs=2, type=float, default=[10.0, 80.0], metavar=("MIN", "MAX"),
+                      help="radial bounds (default 10 80)")
+    grid.add_argument("--cells", nargs=3, type=int, default=[10, 36, 18],
+                      metavar=("N_RHO", "N_THETA", "N_PHI"), help="cell counts (default 10 36 18)")
+    grid.add_argument("--spacing", choices=["log", "paper", "uniform"], default="paper",
+                      help="radial spacing (default paper)")
+    grid.add_argument("--theta-range", nargs=2, type=float, default=[-180.0, 180.0],
+                      metavar=("MIN", "MAX"), help="azimuth range in degrees")
+    grid.add_argument("--phi-range", nargs=2, type=float, default=[-90.0, 90.0],
+                      metavar=("MIN", "MAX"), help="elevation range in degrees")
+
+
+def _load_rays(path):
+    path = Path(path)
+    if not path.is_file():
+        raise CliError(f"no such rays file: {path}")
+    try:
+        if path.suffix == ".npy":
+            rays = np.load(path, allow_pickle=False)
+        elif path.suffix == ".csv":
+            rays = np.loadtxt(path, delimiter=",", ndmin=2)
+        else:
+            raise CliError(f"rays file must be .npy or .csv, got {path.name}")
+    except CliError:
+        raise
+    except Exception as error:  # noqa: BLE001 - any reader failure is one line
+        raise CliError(f"cannot read {path}: {error}") from None
+    if rays.ndim != 2 or rays.shape[1] != 6:
+        raise CliError(f"{path} must hold an (m, 6) array of origin + direction, got {rays.shape}")
+    return rays
+
+
+def _trace_batch(grid, rays, out, progress):
+    """Trace in chunks (bounded memory) and write one CSR .npz."""
+    from .api import trace_many
+
+    parts = []
+    total = rays.shape[0]
+    start = time.perf_counter()
+    for first in range(0, total, CHUNK_RAYS):
+        chunk = trace_many(grid, rays[first:first + CHUNK_RAYS])
+        parts.append(chunk)
+        if progress:
+            done = min(first + CHUNK_RAYS, total)
+            bar = "#" * int(30 * done / total)
+            print(f"\r[{bar:<30}] {done:,}/{total:,} rays", end="", file=sys.stderr, flush=True)
+    if progress:
+        print(file=sys.stderr)
+    counts = np.concatenate([part.counts for part in parts]) if parts else np.zeros(0, np.int64)
+    offsets = np.zeros(total + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+
+    def joined(name, empty):
+        return np.concatenate([getattr(p, name) for p in parts]) if parts else empty
+
+    np.savez(out, offsets=offsets, cells=joined("cells", np.empty((0, 3), np.int32)),
+             t_enter=joined("t_enter", np.empty(0)), t_exit=joined("t_exit", np.empty(0)))
+    return total, int(offsets[-1]), time.perf_counter() - start
+
+
+def _print_trace(result, fmt, stream):
+    rows = [
+        {"i": int(c[0]), "j": int(c[1]), "k": int(c[2]), "t_enter": float(a), "t_exit": float(b)}
+        for c, a, b in zip(result.cells, result.t_enter, result.t_exit)
+    ]
+    if fmt == "json":
+        json.dump(rows, stream, indent=1)
+        stream.write("\n")
+    elif fmt == "csv":
+        stream.write("i,j,k,t_enter,t_exit\n")
+        for r in rows:
+            stream.write(f"{r['i']},{r['j']},{r['k']},{r['t_enter']!r},{r['t_exit']!r}\n")
+    else:
+        stream.write(f"{'i':>4} {'j':>4} {'k':>4} {'t_enter':>10} {'t_exit':>10}\n")
+        for r in rows:
+            stream.write(f"{r['i']:4d} {r['j']:4d} {r['k']:4d} {r['t_enter']:10.4f} "
+                         f"{r['t_exit']:10.4f}\n")
+
+
+def _print_cone(cone, fmt, stream):
+    rows = [{"i": int(c[0]), "j": int(c[1]), "k": int(c[2]), "weight": float(w),
+             "t_first": float(t)} for c, w, t in zip(cone.cells, cone.weights, cone.t_first)]
+    if fmt == "json":
+        json.dump(rows, stream, indent=1)
+        stream.write("\n")
+    elif fmt == "csv":
+        stream.write("i,j,k,weight,t_first\n")
+        for r in rows:
+            stream.write(f"{r['i']},{r['j']},{r['k']},{r['weight']!r},{r['t_first']!r}\n")
+    else:
+        stream.write(f"{cone.directions.shape[0]} rays; {len(rows)} cells\n")
+        stream.write(f"{'i':>4} {'j':>4} {'k':>4} {'weight':>9} {'t_first':>10}\n")
+        for r in rows:
+            stream.write(f"{r['i']:4d} {r['j']:4d} {r['k']:4d} {r['weight']:9.5f} "
+                         f"{r['t_first']:10.4f}\n")
+
+
+def cmd_trace(args):
+    from .api import trace
+    from .cone import trace_cone
+
+    grid = _grid(args)
+    if args.rays:
+        if args.origin or args.direction or args.cone:
+            raise CliError("--rays traces a batch: leave out --origin, --direction and --cone")
+        if not args.out:
+            raise CliError("--rays needs --out FILE.npz")
+        rays = _load_rays(args.rays)
+        count, segments, seconds = _trace_batch(grid, rays, args.out, progress=not args.quiet)
+        print(f"{count:,} rays, {segments:,} segments in {seconds:.2f} s -> {args.out}")
+        return 0
+    if args.origin is None or args.direction is None:
+        raise CliError("give --origin X Y Z and --direction X Y Z, or --rays FILE")
+    if args.cone:
+        cone = trace_cone(grid, args.origin, args.direction, np.radians(args.cone))
+        _print_cone(cone, args.format, sys.stdout)
+    else:
+        _print_trace(trace(grid, args.origin, args.direction), args.format, sys.stdout)
+    return 0
+
+
+def cmd_demo(args):
+    """The paper's worked example and a gaze cone into the synthetic scene; figures to disk."""
+    try:
+        import matplotlib
+    except ImportError:
+        raise CliError("the demo draws figures with matplotlib: pip install 'logsph_trace[plot]'") \
+            from None
+
+    matplotlib.use("Agg")
+    from . import Grid, fixation_probability, gaze_targets, trace
+    from .occupancy import OccupancyGrid
+    from .plot import trace_figure
+    from .scene import table_scene
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    grid = Grid.from_increments(10.0, 80.0, 10, d_theta=10.0, d_phi=10.0)
+    origin, direction = (0.0, 20.0, 20.0), (-0.3, -0.01, 0.0)
+    exact = trace(grid, origin, direction)
+    bisect = trace(grid, origin, direction, method="bisect")
+    print("The paper's worked example (Fig. 3), decimetres:")
+    print(f"  gaze from {origin} along {direction}: {len(exact)} cells (exact); "
+          f"Algorithm 1 with the paper's default_t reports {len(bisect)}")
+    _print_trace(exact, "table", sys.stdout)
+    figure = trace_figure(grid, origin, direction, exact, title="The paper's Fig. 3 example")
+    figure.savefig(out / "fig3_worked_example.png", dpi=90)
+
+    scene, eyes, target = table_scene()
+    room = Grid(0.3, 5.0, 32, 120, 60)
+    points, labels, _ = scene.depth_points()
+    bvm = OccupancyGrid(room)
+    for _ in range(3):
+        bvm.integrate(points, [0.0, 0.0, 0.0])
+    targets = gaze_targets(bvm, eyes, target - eyes)
+    fixation = fixation_probability(bvm, eyes, target - eyes, half_angle=np.radians(4))
+    object_cells = {tuple(c) for c in room.cell_of(points[labels == scene.index("object")]).tolist()}
+    print("\nA person 1.5 m from the robot looks at an object on a table (cf. Fig. 5):")
+    print(f"  {points.shape[0]:,} depth points -> occupancy map {room.shape}")
+    print(f"  {'cell':>16} {'fixation':>9} {'on the object':>14}")
+    for cell, value in zip(fixation.cells[:5].tolist(), fixation.values[:5]):
+        print(f"  {str(tuple(cell)):>16} {value:9.3f} {str(tuple(cell) in object_cells):>14}")
+    top = bool(len(targets)) and tuple(targets.cells[0]) in object_cells
+    print(f"  the first occupied cell on the gaze is on the object: {top}")
+    _scene_figure(room, bvm, eyes, target, targets, points, out / "fig5_gaze_on_object.png")
+    print(f"\nfigures written to {out}/ in {time.perf_counter() - start:.1f} s")
+    return 0
+
+
+def _scene_figure(grid, bvm, eyes, target, targets, points, path):
+    import matplotlib.pyplot as plt
+
+    from .plot import plot_cells
+
+    fig = plt.figure(figsize=(7, 6))
+    ax = fig.add_subplot(projection="3d")
+    cloud = points[::97]
+    ax.scatter(cloud[:, 0], cloud[:, 2], cloud[:, 1], s=0.5, color="tab:blue", alpha=0.3)
+    occupied = bvm.occupied(0.6)
+    near = occupied[grid.rho_edges[occupied[:, 0]] < 3.0]  # the wall behind would hide the rest
+    hit = {tuple(c) for c in targets.cells.tolist()}
+    near = np.array([c for c in near.tolist() if tuple(c) not in hit], dtype=np.int32)
+    plot_cells(grid, near, ax=ax, color="tab:red", alpha=0.06)
+    plot_cells(grid, targets.cells, ax=ax, color="tab:green", alpha=0.9)
+    line = np.stack([eyes, eyes + 1.6 * (target - eyes)])
+    ax.plot(line[:, 0], line[:, 2], line[:, 1], color="gold", linewidth=2)
+    ax.set_xlim(-0.8, 1.2)  # the table, the object and the person
+    ax.set_ylim(1.0, 2.4)
+    ax.set_zlim(-0.8, 0.3)
+    ax.view_init(elev=30, azim=-50)
+    ax.set_xlabel("x")
+    ax.set_ylabel("z")
+    ax.set_zlabel("y (up)")
+    ax.set_title("occupied cells nearer than 3 m (red; the wall is left out),\n"
+                 "the gaze (yellow) and what it lands on (green)")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def cmd_bench(args):
+    """The Fig. 4 timing study (bench/fig4.py must be importable: run from the repository)."""
+    if (Path.cwd() / "bench" / "fig4.py").is_file() and str(Path.cwd()) not in sys.path:
+        sys.path.insert(0, str(Path.cwd()))  # the console script's path is its bin/ folder
+    try:
+        from bench import fig4
+    except ImportError:
+        raise CliError("logsph-trace bench runs bench/fig4.py: run it from the repository root") \
+            from None
+    argv = ["--sizes", "8", "16", "32", "--repetitions", "20"] if args.quick else []
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    fig4.main(argv + ["--out", str(out / "fig4.json")])
+    return 0
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(
+        prog="logsph-trace",
+        description="Exact ray traversal of bounded log-spherical grids (gaze tracing).",
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+    demo = commands.add_parser("demo", help="the paper's example and a gaze into a scene")
+    demo.add_argument("--out", default=str(OUT_DIR), help="folder for the figures")
+    demo.set_defaults(run=cmd_demo)
+    trace = commands.add_parser("trace", help="trace one ray, a gaze cone, or a batch file")
+    trace.add_argument("--origin", nargs=3, type=float, metavar=("X", "Y", "Z"))
+    trace.add_argument("--direction", nargs=3, type=float, metavar=("X", "Y", "Z"))
+    trace.add_argument("--cone", type=float, metavar="DEG", help="gaze cone half-angle in degrees")
+    trace.add_argument("--format", choices=["table", "json", "csv"], default="table")
+    trace.add_argument("--rays", metavar="FILE", help="(m, 6) origin + direction, .npy or .csv")
+    trace.add_argument("--out", metavar="FILE.npz", help="where a batch's traces go")
+    trace.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_grid_options(trace)
+    trace.set_defaults(run=cmd_trace)
+    bench = commands.add_parser("bench", help="the timing study (Fig. 4)")
+    bench.add_argument("--quick", action="store_true", help="small sizes, 20 repetitions")
+    bench.add_argument("--out", default=str(OUT_DIR), help="folder for fig4.json/.md/.png")
+    bench.set_defaults(run=cmd_bench)
+    return parser
+
+
+def main(argv=None):
+    parser = build_parser()
+    args = parser.parse_args(argv)  # argparse reports its own errors in one line (exit 2)
+    try:
+        return args.run(args)
+    except (CliError, ValueError) as error:
+        print(f"logsph-trace: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
