@@ -185,3 +185,37 @@ def trace_figure(grid, origin, direction, trace, title=None):
         fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def plot_heatmap(grid, values, ax=None, reduce="max", cmap="magma", label=None):
+    """A map over the grid (occupancy, fixation probability) as a heat map over theta and phi.
+
+    Parameters
+    ----------
+    grid : Grid
+    values : array_like, shape ``grid.shape``
+        E.g. ``OccupancyGrid.probability`` or ``fixation_probability(..., dense=True)``.
+    reduce : {"max", "sum", "mean"}
+        How the radial cells of each direction are combined.
+    ax : matplotlib.axes.Axes, optional
+    label : str, optional
+        Colour-bar label.
+
+    Returns
+    -------
+    matplotlib.axes.Axes
+    """
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape != grid.shape:
+        raise ValueError(f"values must have the grid's shape {grid.shape}, got {values.shape}")
+    reducers = {"max": np.max, "sum": np.sum, "mean": np.mean}
+    if reduce not in reducers:
+        raise ValueError(f"reduce must be one of {tuple(reducers)}, got {reduce!r}")
+    ax = _axes(ax)
+    image = reducers[reduce](values, axis=0)  # (n_theta, n_phi)
+    mesh = ax.pcolormesh(np.degrees(grid.theta_edges), np.degrees(grid.phi_edges), image.T,
+                         cmap=cmap, shading="flat")
+    ax.figure.colorbar(mesh, ax=ax, label=label or f"{reduce} over rho")
+    ax.set_xlabel("theta (deg)")
+    ax.set_ylabel("phi (deg)")
+    return ax

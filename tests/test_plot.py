@@ -39,3 +39,18 @@ def test_rho_theta_panel():
     ax = plot_rho_theta(grid, [1.0, 0.5, -2.0], [0.3, 0.0, 1.0])
     assert ax.get_xlabel() == "rho" and "theta" in ax.get_ylabel()
     matplotlib.pyplot.close(ax.figure)
+
+
+def test_heatmap_over_theta_and_phi():
+    from logsph_trace.plot import plot_heatmap
+
+    grid = lt.Grid(0.3, 10.0, 4, 8, 4)
+    values = np.zeros(grid.shape)
+    values[2, 5, 1] = 0.9
+    ax = plot_heatmap(grid, values)
+    mesh = ax.collections[0]
+    assert mesh.get_array().reshape(4, 8)[1, 5] == 0.9  # (phi, theta) after the transpose
+    assert ax.get_xlabel() == "theta (deg)"
+    with pytest.raises(ValueError, match="values must have the grid's shape"):
+        plot_heatmap(grid, np.zeros((2, 2, 2)))
+    matplotlib.pyplot.close(ax.figure)
