@@ -14,6 +14,7 @@ from . import Grid, trace, trace_many
 
 
 def main(argv=None):
+    """Print the worked example's cells and time a 100,000-ray batch."""
     grid = Grid.from_increments(10.0, 80.0, 10, d_theta=10.0, d_phi=10.0, spacing="paper")
     origin, direction = (0.0, 20.0, 20.0), (-0.3, -0.01, 0.0)
     start = time.perf_counter()

@@ -1,7 +1,8 @@
 """The ``logsph-trace`` command line.
 
     logsph-trace demo
-    logsph-trace trace --origin 0 2 2 --direction -0.3 -0.01 0 [--cone 5] [--format table]
+    logsph-trace trace --grid 0.3,10,64,360,180 --origin 0 2 2 --direction -0.3 -0.01 0
+                       [--cone 5] [--format table|json|csv]
     logsph-trace trace --rays rays.npy --out traces.npz
     logsph-trace bench [--quick]
 
@@ -25,9 +26,25 @@ class CliError(Exception):
     """An error to report in one line."""
 
 
+def _grid_spec(spec):
+    """``RHO_MIN,RHO_MAX,N_RHO,N_THETA,N_PHI[,SPACING]`` -> the grid options."""
+    fields = [field.strip() for field in spec.split(",")]
+    if len(fields) not in (5, 6):
+        raise CliError(f"--grid takes RHO_MIN,RHO_MAX,N_RHO,N_THETA,N_PHI[,SPACING], got {spec!r}")
+    try:
+        rho = [float(fields[0]), float(fields[1])]
+        cells = [int(fields[2]), int(fields[3]), int(fields[4])]
+    except ValueError:
+        raise CliError(f"--grid takes numbers: RHO_MIN,RHO_MAX,N_RHO,N_THETA,N_PHI, got {spec!r}") \
+            from None
+    return rho, cells, (fields[5] if len(fields) == 6 else "log")
+
+
 def _grid(args):
     from .grid import Grid
 
+    if getattr(args, "grid", None):
+        args.rho, args.cells, args.spacing = _grid_spec(args.grid)
     theta = tuple(np.radians(args.theta_range))
     phi = tuple(np.radians(args.phi_range))
     return Grid(args.rho[0], args.rho[1], args.cells[0], args.cells[1], args.cells[2],
@@ -36,6 +53,9 @@ def _grid(args):
 
 def _add_grid_options(parser):
     grid = parser.add_argument_group("grid (default: the paper's worked example, decimetres)")
+    grid.add_argument("--grid", metavar="SPEC",
+                      help="RHO_MIN,RHO_MAX,N_RHO,N_THETA,N_PHI[,SPACING] (spacing default log); "
+                           "overrides --rho, --cells and --spacing")
     grid.add_argument("--rho", nargs=2, type=float, default=[10.0, 80.0], metavar=("MIN", "MAX"),
                       help="radial bounds (default 10 80)")
     grid.add_argument("--cells", nargs=3, type=int, default=[10, 36, 18],
@@ -89,6 +109,7 @@ def _trace_batch(grid, rays, out, progress):
     np.cumsum(counts, out=offsets[1:])
 
     def joined(name, empty):
+        """One field of all the chunks, concatenated."""
         return np.concatenate([getattr(p, name) for p in parts]) if parts else empty
 
     np.savez(out, offsets=offsets, cells=joined("cells", np.empty((0, 3), np.int32)),
@@ -134,6 +155,7 @@ def _print_cone(cone, fmt, stream):
 
 
 def cmd_trace(args):
+    """``logsph-trace trace``: one ray, a gaze cone, or a batch file."""
     from .api import trace
     from .cone import trace_cone
 
@@ -253,6 +275,7 @@ def cmd_bench(args):
 
 
 def build_parser():
+    """The argparse parser of ``logsph-trace`` and its subcommands."""
     parser = argparse.ArgumentParser(
         prog="logsph-trace",
         description="Exact ray traversal of bounded log-spherical grids (gaze tracing).",
@@ -279,6 +302,7 @@ def build_parser():
 
 
 def main(argv=None):
+    """Run ``logsph-trace`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)  # argparse reports its own errors in one line (exit 2)
     try:

@@ -243,30 +243,37 @@ class Grid:
 
     @property
     def n_rho(self):
+        """Number of radial cells."""
         return self.shape[0]
 
     @property
     def n_theta(self):
+        """Number of azimuthal cells."""
         return self.shape[1]
 
     @property
     def n_phi(self):
+        """Number of elevation cells."""
         return self.shape[2]
 
     @property
     def rho_min(self):
+        """Inner radius of the region (the egocentric gap is below it)."""
         return float(self.rho_edges[0])
 
     @property
     def rho_max(self):
+        """Outer radius of the region."""
         return float(self.rho_edges[-1])
 
     @property
     def theta_range(self):
+        """``(theta_min, theta_max)`` in radians."""
         return float(self.theta_edges[0]), float(self.theta_edges[-1])
 
     @property
     def phi_range(self):
+        """``(phi_min, phi_max)`` in radians."""
         return float(self.phi_edges[0]), float(self.phi_edges[-1])
 
     def __repr__(self):

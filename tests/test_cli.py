@@ -41,6 +41,19 @@ def test_trace_one_ray_in_each_format():
     assert csv[0] == "i,j,k,t_enter,t_exit" and len(csv) == 15
 
 
+def test_grid_spec():
+    result = run("trace", "--grid", "0.3,10,16,36,18", "--origin", "0.4", "1.5", "1.2",
+                 "--direction", "-0.1", "-0.4", "1", "--format", "json")
+    assert result.returncode == 0, result.stderr
+    want = lt.trace(lt.Grid(0.3, 10, 16, 36, 18), [0.4, 1.5, 1.2], [-0.1, -0.4, 1])
+    assert [[r["i"], r["j"], r["k"]] for r in json.loads(result.stdout)] == want.cells.tolist()
+    bad = run("trace", "--grid", "0.3,10,16", "--origin", "0", "0", "1", "--direction", "0", "0", "1")
+    assert bad.returncode == 2 and "--grid takes RHO_MIN,RHO_MAX" in bad.stderr
+    bad = run("trace", "--grid", "0.3,10,16,36,18,cubic", "--origin", "0", "0", "1",
+              "--direction", "0", "0", "1")
+    assert bad.returncode == 2 and "spacing must be one of" in bad.stderr
+
+
 def test_trace_a_cone():
     result = run("trace", "--origin", "0", "20", "20", "--direction", "-0.3", "-0.01", "0",
                  "--cone", "5", "--format", "json")

@@ -96,11 +96,13 @@ def theta_zone(x, z, theta_edges, theta_kind):
 
 @jit
 def phi_zone(x, y, z, phi_edges, phi_kind):
+    """Elevation zone of the point (x, y, z)."""
     return locate(elevation(x, y, z), phi_edges, phi_kind)
 
 
 @jit
 def rho_zone(x, y, z, rho_edges, rho_kind):
+    """Radial zone of the point (x, y, z); -1 in the egocentric gap, n_rho beyond rho_max."""
     return locate(np.sqrt(x * x + y * y + z * z), rho_edges, rho_kind)
 
 

@@ -17,6 +17,7 @@ from .locate import phi_zone, rho_zone, theta_zone
 
 @jit
 def scratch_length(n_rho, n_theta, n_phi):
+    """Most break points one ray can have: every root of every boundary, plus 0 and the end."""
     return 2 * (n_rho + 1) + (n_theta + 1) + 2 * (n_phi + 1) + 3
 
 
