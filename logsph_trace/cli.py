@@ -12,6 +12,7 @@ stderr and exit status 2, never a traceback.
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -117,41 +118,40 @@ def _trace_batch(grid, rays, out, progress):
     return total, int(offsets[-1]), time.perf_counter() - start
 
 
+def _print_rows(rows, columns, fmt, stream):
+    """Write ``rows`` (dicts) as JSON, CSV, or a table of ``columns`` ((name, table format))."""
+    if fmt == "json":
+        json.dump(rows, stream, indent=1)
+        stream.write("\n")
+    elif fmt == "csv":
+        stream.write(",".join(name for name, _ in columns) + "\n")
+        for row in rows:
+            stream.write(",".join(repr(row[name]) for name, _ in columns) + "\n")
+    else:
+        widths = [len(format(rows[0][name], spec)) if rows else len(name) for name, spec in columns]
+        stream.write(" ".join(f"{name:>{max(w, len(name))}}" for (name, _), w in zip(columns, widths))
+                     + "\n")
+        for row in rows:
+            stream.write(" ".join(f"{format(row[name], spec):>{max(w, len(name))}}"
+                                  for (name, spec), w in zip(columns, widths)) + "\n")
+
+
 def _print_trace(result, fmt, stream):
     rows = [
         {"i": int(c[0]), "j": int(c[1]), "k": int(c[2]), "t_enter": float(a), "t_exit": float(b)}
         for c, a, b in zip(result.cells, result.t_enter, result.t_exit)
     ]
-    if fmt == "json":
-        json.dump(rows, stream, indent=1)
-        stream.write("\n")
-    elif fmt == "csv":
-        stream.write("i,j,k,t_enter,t_exit\n")
-        for r in rows:
-            stream.write(f"{r['i']},{r['j']},{r['k']},{r['t_enter']!r},{r['t_exit']!r}\n")
-    else:
-        stream.write(f"{'i':>4} {'j':>4} {'k':>4} {'t_enter':>10} {'t_exit':>10}\n")
-        for r in rows:
-            stream.write(f"{r['i']:4d} {r['j']:4d} {r['k']:4d} {r['t_enter']:10.4f} "
-                         f"{r['t_exit']:10.4f}\n")
+    columns = [("i", "4d"), ("j", "4d"), ("k", "4d"), ("t_enter", "10.4f"), ("t_exit", "10.4f")]
+    _print_rows(rows, columns, fmt, stream)
 
 
 def _print_cone(cone, fmt, stream):
     rows = [{"i": int(c[0]), "j": int(c[1]), "k": int(c[2]), "weight": float(w),
              "t_first": float(t)} for c, w, t in zip(cone.cells, cone.weights, cone.t_first)]
-    if fmt == "json":
-        json.dump(rows, stream, indent=1)
-        stream.write("\n")
-    elif fmt == "csv":
-        stream.write("i,j,k,weight,t_first\n")
-        for r in rows:
-            stream.write(f"{r['i']},{r['j']},{r['k']},{r['weight']!r},{r['t_first']!r}\n")
-    else:
+    if fmt == "table":
         stream.write(f"{cone.directions.shape[0]} rays; {len(rows)} cells\n")
-        stream.write(f"{'i':>4} {'j':>4} {'k':>4} {'weight':>9} {'t_first':>10}\n")
-        for r in rows:
-            stream.write(f"{r['i']:4d} {r['j']:4d} {r['k']:4d} {r['weight']:9.5f} "
-                         f"{r['t_first']:10.4f}\n")
+    columns = [("i", "4d"), ("j", "4d"), ("k", "4d"), ("weight", "9.5f"), ("t_first", "10.4f")]
+    _print_rows(rows, columns, fmt, stream)
 
 
 def cmd_trace(args):
@@ -310,6 +310,12 @@ def main(argv=None):
     except (CliError, ValueError) as error:
         print(f"logsph-trace: error: {error}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # The reader (e.g. ``| head``) stopped reading: not our error, no traceback.
+        # Point stdout at devnull so the interpreter's final flush cannot fail too.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 1
 
 
 if __name__ == "__main__":

@@ -123,3 +123,17 @@ def test_bench_quick_writes_the_timing_study(tmp_path):
     result = run("bench", "--quick", "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "fig4.png").exists() and (tmp_path / "fig4.json").exists()
+
+
+def test_a_reader_that_stops_early_gets_no_traceback():
+    command = _entry_point()
+    process = subprocess.Popen(
+        # A 3-degree cone's cells as JSON: ~2 MB, far past a pipe's buffer.
+        [command, "trace", "--grid", "0.3,10,64,360,180", "--origin", "0.4", "1.6", "1.5",
+         "--direction", "-0.2", "-0.5", "-1", "--cone", "3", "--format", "json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO,
+    )
+    process.stdout.readline()  # like `| head -1`
+    process.stdout.close()
+    _, stderr = process.communicate(timeout=300)
+    assert b"Traceback" not in stderr
