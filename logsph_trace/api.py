@@ -270,15 +270,14 @@ def _run_exact_chunks(grid, origins, directions, t_max, args, threads):
 
 def _run_exact_bounded(grid, origins, directions, t_max, args):
     """Parallel fallback: bound pass, prefix sum, trace pass, gather (no estimate needed)."""
-    bound, trace_rows, gather = (
-        _exact.bound_rows_parallel, _exact.trace_rows_parallel, _exact.gather_rows_parallel
-    )
-    bounds, lookups = bound(origins, directions, *args)
+    bounds, lookups = _exact.bound_rows(origins, directions, *args)
     bound_offsets = _offsets(bounds)
     loose = _segment_arrays(int(bound_offsets[-1]))
-    offsets = _offsets(trace_rows(origins, directions, t_max, *args, lookups, bound_offsets, *loose))
+    offsets = _offsets(
+        _exact.trace_rows(origins, directions, t_max, *args, lookups, bound_offsets, *loose)
+    )
     segments = _segment_arrays(int(offsets[-1]))
-    gather(bound_offsets, offsets, *loose, *segments)
+    _exact.gather_rows(bound_offsets, offsets, *loose, *segments)
     return Traces(offsets, *segments)
 
 

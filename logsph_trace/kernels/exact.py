@@ -33,7 +33,7 @@ import math
 import numpy as np
 from numba import prange
 
-from .._jit import jit, jit_serial_and_parallel
+from .._jit import jit
 from .locate import TWO_PI, azimuth, locate, phi_zone, rho_zone, theta_zone
 
 
@@ -600,10 +600,10 @@ def pack_chunks(starts, regions, ends, offsets, cells, t_enter, t_exit):
     return total
 
 
-# The same source compiled twice: ``prange`` is a plain ``range`` without
-# ``parallel=True``, so serial and parallel runs execute identical per-ray code
-# and each ray writes only its own slice: the output does not depend on threads.
-bound_rows, bound_rows_parallel = jit_serial_and_parallel(_bound_rows)
-trace_rows, trace_rows_parallel = jit_serial_and_parallel(_trace_rows)
-gather_rows, gather_rows_parallel = jit_serial_and_parallel(_gather_rows)
-_, trace_chunks = jit_serial_and_parallel(_trace_chunks)
+# The parallel batch kernels. One thread never needs them: it traces by
+# appending (``trace_span``). Each ray writes only its own slice or region, so
+# the output does not depend on the number of threads.
+bound_rows = jit(_bound_rows, parallel=True)
+trace_rows = jit(_trace_rows, parallel=True)
+gather_rows = jit(_gather_rows, parallel=True)
+trace_chunks = jit(_trace_chunks, parallel=True)
