@@ -20,7 +20,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit, jit_serial_and_parallel
-from .locate import phi_zone, rho_zone, theta_zone
+from .locate import BLOCK, cell_of_point
 
 _NONE = 0
 _HALVED = 1
@@ -28,22 +28,9 @@ _GREW = 2
 
 
 @jit
-def _cell(x, y, z, rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind):
-    """Cartesian2DiscreteLogSpherical: (i, j, k), with i = -1 outside the region."""
-    i = rho_zone(x, y, z, rho_edges, rho_kind)
-    j = theta_zone(x, z, theta_edges, theta_kind)
-    k = phi_zone(x, y, z, phi_edges, phi_kind)
-    if i < 0 or i >= rho_edges.shape[0] - 1 or j >= theta_edges.shape[0] - 1:
-        return -1, -1, -1
-    if k < 0 or k >= phi_edges.shape[0] - 1:
-        return -1, -1, -1
-    return i, j, k
-
-
-@jit
 def _inside(ox, oy, oz, dx, dy, dz, t,
             rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind):
-    i, _, _ = _cell(ox + t * dx, oy + t * dy, oz + t * dz,
+    i, _, _ = cell_of_point(ox + t * dx, oy + t * dy, oz + t * dz,
                     rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind)
     return i >= 0
 
@@ -120,7 +107,7 @@ def bisect_ray(ox, oy, oz, dx, dy, dz,
         return 0
     # The entry lies on a boundary; the first cell is read just inside it.
     t0 = t_first + 1e-9 * rho_edges[-1]
-    i, j, k = _cell(ox + t0 * dx, oy + t0 * dy, oz + t0 * dz,
+    i, j, k = cell_of_point(ox + t0 * dx, oy + t0 * dy, oz + t0 * dz,
                     rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind)
     if i < 0:
         return 0
@@ -137,7 +124,7 @@ def bisect_ray(ox, oy, oz, dx, dy, dz,
     last_action = _NONE
     for _ in range(max_iter):
         t1 = t0 + dt
-        i1, j1, k1 = _cell(ox + t1 * dx, oy + t1 * dy, oz + t1 * dz,
+        i1, j1, k1 = cell_of_point(ox + t1 * dx, oy + t1 * dy, oz + t1 * dz,
                            rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind)
         if i1 < 0:
             if write:
@@ -174,9 +161,6 @@ def bisect_ray(ox, oy, oz, dx, dy, dz,
             last_action = _NONE
         t_last = t1
     return count
-
-
-BLOCK = 256  # rays per scratch allocation
 
 
 def _count_bisect_rows(origins, directions, rho_edges, rho_kind, theta_edges, theta_kind,

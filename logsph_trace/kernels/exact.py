@@ -34,7 +34,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .locate import TWO_PI, azimuth, locate, phi_zone, rho_zone, theta_zone
+from .locate import BLOCK, TWO_PI, azimuth, locate, phi_zone, rho_zone, theta_zone
 
 
 @jit
@@ -448,10 +448,6 @@ def trace_ray(
         if done_r == n_r:
             break  # past rho_max and moving away for good
     return count
-
-
-# Rays are handed out in blocks so each block allocates its scratch once.
-BLOCK = 256
 
 
 def _bound_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,

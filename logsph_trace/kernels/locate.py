@@ -25,6 +25,9 @@ PAPER = 3
 
 TWO_PI = 2.0 * np.pi
 
+# Rays per block in the batch kernels: each block allocates its scratch once.
+BLOCK = 256
+
 
 @jit
 def locate(value, edges, kind):
@@ -107,21 +110,26 @@ def rho_zone(x, y, z, rho_edges, rho_kind):
 
 
 @jit
+def cell_of_point(x, y, z, rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind):
+    """Cartesian2DiscreteLogSpherical (the appendix, corrected): (i, j, k), or
+    (-1, -1, -1) outside the region."""
+    i = rho_zone(x, y, z, rho_edges, rho_kind)
+    j = theta_zone(x, z, theta_edges, theta_kind)
+    k = phi_zone(x, y, z, phi_edges, phi_kind)
+    inside = (0 <= i < rho_edges.shape[0] - 1 and j < theta_edges.shape[0] - 1
+              and 0 <= k < phi_edges.shape[0] - 1)
+    if not inside:
+        return -1, -1, -1
+    return i, j, k
+
+
+@jit
 def cells_of_points(points, rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind):
     """(M, 3) float64 points -> (M, 3) int32 cells, rows of -1 outside the region."""
-    n_rho = rho_edges.shape[0] - 1
-    n_theta = theta_edges.shape[0] - 1
-    n_phi = phi_edges.shape[0] - 1
-    out = np.full((points.shape[0], 3), -1, dtype=np.int32)
+    out = np.empty((points.shape[0], 3), dtype=np.int32)
     for row in range(points.shape[0]):
-        x = points[row, 0]
-        y = points[row, 1]
-        z = points[row, 2]
-        i = rho_zone(x, y, z, rho_edges, rho_kind)
-        j = theta_zone(x, z, theta_edges, theta_kind)
-        k = phi_zone(x, y, z, phi_edges, phi_kind)
-        if 0 <= i < n_rho and 0 <= j < n_theta and 0 <= k < n_phi:
-            out[row, 0] = i
-            out[row, 1] = j
-            out[row, 2] = k
+        out[row, 0], out[row, 1], out[row, 2] = cell_of_point(
+            points[row, 0], points[row, 1], points[row, 2],
+            rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind,
+        )
     return out

@@ -10,9 +10,7 @@ from numba import prange
 
 from .._jit import jit
 from .exact import FULL, max_segments, scratch_size, trace_ray
-from .locate import locate, phi_zone, theta_zone
-
-BLOCK = 256
+from .locate import BLOCK, locate, phi_zone, theta_zone
 
 
 def _mark_rays(origins, directions, distances, is_hit, rho_edges, rho_sq, rho_kind, theta_edges,

@@ -12,7 +12,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit, jit_serial_and_parallel
-from .locate import phi_zone, rho_zone, theta_zone
+from .locate import BLOCK, phi_zone, rho_zone, theta_zone
 
 
 @jit
@@ -114,9 +114,6 @@ def thibaudeau_ray(ox, oy, oz, dx, dy, dz,
             last_k = k
         last_exit = t_to
     return count
-
-
-BLOCK = 256  # rays per scratch allocation
 
 
 def _count_thibaudeau_rows(origins, directions, rho_edges, rho_kind, theta_edges, theta_kind,
