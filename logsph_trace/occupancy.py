@@ -207,12 +207,14 @@ def gaze_targets(occupancy, origin, direction, threshold=0.6):
     _check_occupancy(occupancy)
     threshold = _probability("threshold", threshold)
     ray = trace_many(occupancy.grid, origin, direction, parallel=False)[0]
-    cells = ray.unique()
-    first = np.array([ray.t_enter[np.flatnonzero(np.all(ray.cells == c, axis=1))[0]]
-                      for c in cells]) if len(cells) else np.empty(0)
-    probability = occupancy.probability[tuple(cells.T)] if len(cells) else np.empty(0)
+    if len(ray) == 0:
+        return GazeTargets(ray.cells, np.empty(0), np.empty(0))
+    _, first = np.unique(ray.cells, axis=0, return_index=True)
+    first = np.sort(first)  # each cell at its first entry, in order of distance
+    cells = ray.cells[first]
+    probability = 1.0 / (1.0 + np.exp(-occupancy.log_odds[tuple(cells.T)].astype(np.float64)))
     above = probability > threshold
-    return GazeTargets(cells[above], probability[above], first[above])
+    return GazeTargets(cells[above], probability[above], ray.t_enter[first][above])
 
 
 def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=None,
@@ -267,12 +269,9 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
     free_below = float(free_below)
     if not 0.0 <= free_below <= 1.0:
         raise ValueError(f"free_below must be a probability in [0, 1], got {free_below!r}")
-    probability = occupancy.probability.reshape(-1)
-    probability[probability < free_below] = 0.0
-    probability[occupancy.log_odds.reshape(-1) == 0] = unknown
     segment_values = _kernels.first_occupied(
-        traces.offsets, traces.cells, traces.t_exit, probability, grid.n_theta, grid.n_phi,
-        ray_weights, min_distance,
+        traces.offsets, traces.cells, traces.t_exit, occupancy.log_odds.reshape(-1),
+        grid.n_theta, grid.n_phi, ray_weights, min_distance, unknown, free_below,
     )
     cells, values, t_first = _aggregate(grid, traces, directions, ray_weights,
                                         segment_weights=segment_values, normalise=False)

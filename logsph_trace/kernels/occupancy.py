@@ -83,14 +83,16 @@ apply_flags = jit(_apply_flags, parallel=True)
 
 
 @jit
-def first_occupied(offsets, cells, t_exit, probability, n_theta, n_phi, ray_weights,
-                   min_distance):
+def first_occupied(offsets, cells, t_exit, log_odds, n_theta, n_phi, ray_weights,
+                   min_distance, unknown, free_below):
     """Per segment: weight x P(its cell is the first occupied cell the ray meets).
 
-    ``probability`` is the flat occupancy. Along a ray, P_first(c) = p_c times
-    the product of (1 - p) over the distinct cells before c; a cell the ray
-    re-enters adds nothing (had it been occupied, the ray would have stopped
-    at the first entry). Segments ending within ``min_distance`` are skipped.
+    ``log_odds`` is the flat map; only the cells the rays cross are turned
+    into probabilities: ``unknown`` for a never-observed cell (log-odds 0), 0
+    below ``free_below``. Along a ray, P_first(c) = p_c times the product of
+    (1 - p) over the distinct cells before c; a cell the ray re-enters adds
+    nothing (had it been occupied, the ray would have stopped at the first
+    entry). Segments ending within ``min_distance`` are skipped.
     """
     out = np.zeros(cells.shape[0])
     for ray in range(offsets.shape[0] - 1):
@@ -107,7 +109,12 @@ def first_occupied(offsets, cells, t_exit, probability, n_theta, n_phi, ray_weig
             if seen:
                 continue
             flat = (cells[seg, 0] * n_theta + cells[seg, 1]) * n_phi + cells[seg, 2]
-            p = probability[flat]
+            if log_odds[flat] == 0:
+                p = unknown
+            else:
+                p = 1.0 / (1.0 + np.exp(-np.float64(log_odds[flat])))
+                if p < free_below:
+                    p = 0.0
             out[seg] = ray_weights[ray] * p * clear
             clear *= 1.0 - p
     return out
