@@ -70,14 +70,15 @@ def _add_grid_options(parser):
 
 
 def _load_rays(path):
+    """The (m, 6) rays of a .npy (memory-mapped: read a chunk at a time) or .csv file."""
     path = Path(path)
     if not path.is_file():
         raise CliError(f"no such rays file: {path}")
     try:
         if path.suffix == ".npy":
-            rays = np.load(path, allow_pickle=False)
+            rays = np.load(path, mmap_mode="r", allow_pickle=False)
         elif path.suffix == ".csv":
-            rays = np.loadtxt(path, delimiter=",", ndmin=2)
+            rays = np.loadtxt(path, delimiter=",", ndmin=2)  # no lazy CSV reader: read whole
         else:
             raise CliError(f"rays file must be .npy or .csv, got {path.name}")
     except CliError:
@@ -90,32 +91,51 @@ def _load_rays(path):
 
 
 def _trace_batch(grid, rays, out, progress):
-    """Trace in chunks (bounded memory) and write one CSR .npz."""
+    """Trace in chunks and write one CSR .npz, holding one chunk in memory at a time.
+
+    Each chunk's segments are appended to temporary files; the .npz is then
+    written from memory maps of them, which numpy copies in buffered pieces.
+    Besides one chunk, memory holds only the per-ray offsets.
+    """
+    import tempfile
+
     from .api import trace_many
 
-    parts = []
     total = rays.shape[0]
+    counts = np.zeros(total, dtype=np.int64)
     start = time.perf_counter()
-    for first in range(0, total, CHUNK_RAYS):
-        chunk = trace_many(grid, rays[first:first + CHUNK_RAYS])
-        parts.append(chunk)
+    layout = {"cells": (np.int32, (3,)), "t_enter": (np.float64, ()), "t_exit": (np.float64, ())}
+    with tempfile.TemporaryDirectory(dir=Path(out).resolve().parent) as scratch:
+        files = {name: open(Path(scratch) / f"{name}.bin", "wb") for name in layout}
+        try:
+            for first in range(0, total, CHUNK_RAYS):
+                chunk = trace_many(grid, np.ascontiguousarray(rays[first:first + CHUNK_RAYS]))
+                counts[first:first + len(chunk)] = chunk.counts
+                for name, handle in files.items():
+                    getattr(chunk, name).tofile(handle)
+                if progress:
+                    done = min(first + CHUNK_RAYS, total)
+                    bar = "#" * int(30 * done / total)
+                    print(f"\r[{bar:<30}] {done:,}/{total:,} rays", end="", file=sys.stderr,
+                          flush=True)
+        finally:
+            for handle in files.values():
+                handle.close()
         if progress:
-            done = min(first + CHUNK_RAYS, total)
-            bar = "#" * int(30 * done / total)
-            print(f"\r[{bar:<30}] {done:,}/{total:,} rays", end="", file=sys.stderr, flush=True)
-    if progress:
-        print(file=sys.stderr)
-    counts = np.concatenate([part.counts for part in parts]) if parts else np.zeros(0, np.int64)
-    offsets = np.zeros(total + 1, dtype=np.int64)
-    np.cumsum(counts, out=offsets[1:])
-
-    def joined(name, empty):
-        """One field of all the chunks, concatenated."""
-        return np.concatenate([getattr(p, name) for p in parts]) if parts else empty
-
-    np.savez(out, offsets=offsets, cells=joined("cells", np.empty((0, 3), np.int32)),
-             t_enter=joined("t_enter", np.empty(0)), t_exit=joined("t_exit", np.empty(0)))
-    return total, int(offsets[-1]), time.perf_counter() - start
+            print(file=sys.stderr)
+        offsets = np.zeros(total + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        segments = int(offsets[-1])
+        arrays = {}
+        for name, (dtype, tail) in layout.items():
+            if segments == 0:
+                arrays[name] = np.empty((0,) + tail, dtype=dtype)
+            else:
+                arrays[name] = np.memmap(Path(scratch) / f"{name}.bin", dtype=dtype, mode="r",
+                                         shape=(segments,) + tail)
+        np.savez(out, offsets=offsets, **arrays)
+        del arrays  # release the maps before the scratch folder goes
+    return total, segments, time.perf_counter() - start
 
 
 def _print_rows(rows, columns, fmt, stream):
@@ -289,7 +309,8 @@ def build_parser():
     trace.add_argument("--direction", nargs=3, type=float, metavar=("X", "Y", "Z"))
     trace.add_argument("--cone", type=float, metavar="DEG", help="gaze cone half-angle in degrees")
     trace.add_argument("--format", choices=["table", "json", "csv"], default="table")
-    trace.add_argument("--rays", metavar="FILE", help="(m, 6) origin + direction, .npy or .csv")
+    trace.add_argument("--rays", metavar="FILE",
+                       help="(m, 6) origin + direction: .npy (read a chunk at a time) or .csv")
     trace.add_argument("--out", metavar="FILE.npz", help="where a batch's traces go")
     trace.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_grid_options(trace)

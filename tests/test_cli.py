@@ -137,3 +137,21 @@ def test_a_reader_that_stops_early_gets_no_traceback():
     process.stdout.close()
     _, stderr = process.communicate(timeout=300)
     assert b"Traceback" not in stderr
+
+
+def test_batches_are_traced_chunk_by_chunk(tmp_path, monkeypatch):
+    from logsph_trace import cli
+
+    monkeypatch.setattr(cli, "CHUNK_RAYS", 64)  # 500 rays: eight chunks, the last one short
+    rng = np.random.default_rng(72)
+    rays = np.hstack([rng.uniform(-90, 90, (500, 3)), rng.normal(size=(500, 3))])
+    np.save(tmp_path / "rays.npy", rays)
+    grid = lt.Grid.from_increments(10.0, 80.0, 10, d_theta=10.0, d_phi=10.0)
+    count, segments, _ = cli._trace_batch(grid, cli._load_rays(tmp_path / "rays.npy"),
+                                          tmp_path / "out.npz", progress=False)
+    saved = np.load(tmp_path / "out.npz")
+    want = lt.trace_many(grid, rays)
+    assert count == 500 and segments == want.cells.shape[0]
+    for name in ("offsets", "cells", "t_enter", "t_exit"):
+        np.testing.assert_array_equal(saved[name], getattr(want, name))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.npz", "rays.npy"]  # no scratch left
