@@ -126,6 +126,181 @@ def scratch_size(n_rho, n_theta, n_phi):
     return max(2 * (n_rho + 1) + 1, n_theta + 2, 2 * (n_phi + 1) + 1) + 2
 
 
+@jit(inline="always")
+def theta_plan(ox, oz, dx, dz, ab, b2, jt, jt_limit, theta_edges, theta_full, lookups, reuse):
+    """Phase 1 for theta: one monotone sweep, or a jump where the line meets the y axis.
+
+    ``jt`` and ``jt_limit`` are the zones of the origin and of the direction
+    (the limit as t -> inf). Returns the start zone, the sweep sign, the
+    number of half-planes crossed and ``t_axis``, the time of the jump (inf
+    when none). The ambiguous case of a zone wider than half a turn is
+    decided once and kept in ``lookups[4]`` (read back when ``reuse``).
+    """
+    inf = np.inf
+    n_theta = theta_edges.shape[0] - 1
+    n_zones_theta = n_theta if theta_full else n_theta + 1
+    sweep_sign = oz * dx - ox * dz
+    th_sigma = 0
+    th_steps = 0
+    t_axis = inf
+    if dx == 0.0 and dz == 0.0:  # not b2 == 0: b2 underflows for |d_x|, |d_z| < 1e-154
+        pass  # parallel to the y axis: theta never changes
+    elif sweep_sign == 0.0:
+        if -ab / b2 > 0.0:
+            if jt != jt_limit:
+                t_axis = -ab / b2
+        else:
+            jt = jt_limit
+    else:
+        th_sigma = 1 if sweep_sign > 0.0 else -1
+        th_steps = ((jt_limit - jt) * th_sigma) % n_zones_theta
+        if th_steps == 0 and reuse:
+            th_steps = lookups[4]
+        elif th_steps == 0:
+            # A zone wider than half a turn: the sweep (< pi) may still leave it
+            # and come round into it again; compare the sweep with the gap.
+            theta_start = azimuth(ox, oz)
+            theta_limit = azimuth(dx, dz)
+            edge = _theta_edge_ahead(jt, th_sigma, n_theta)
+            sweep = ((theta_limit - theta_start) * th_sigma) % TWO_PI
+            gap = ((theta_edges[edge] - theta_start) * th_sigma) % TWO_PI
+            if gap < sweep:
+                th_steps = n_zones_theta
+            lookups[4] = th_steps
+    return jt, th_sigma, th_steps, t_axis
+
+
+@jit(inline="always")
+def phi_plan(ox, oy, oz, dx, dy, dz, ab, a2, b2, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
+             lookups, reuse):
+    """Phase 1 for phi: up to two monotone branches split at the turning point
+    -q/p, or piecewise constant with a jump at the origin.
+
+    ``kp`` and ``kp_limit`` are the zones of the origin and of the direction.
+    Returns the start zone, ``t_turn`` (end of the first branch, inf when
+    none), the crossings on each branch, the zone the second branch starts
+    in, and 1 when phi jumps at ``t_turn``. The zone at the turning point is
+    kept in ``lookups[7]`` (read back when ``reuse``).
+    """
+    inf = np.inf
+    slope = dy * ab - oy * b2
+    offset = dy * a2 - oy * ab
+    t_turn = inf
+    ph1_steps = 0
+    ph2_start = kp
+    ph2_steps = 0
+    # h2 == 0 (the line meets the origin) is tested on the cross product, which
+    # is exactly 0 for collinear o and d where ``slope`` may round to 1e-16.
+    if h2 == 0.0 or (slope == 0.0 and offset == 0.0):
+        if ox == 0.0 and oy == 0.0 and oz == 0.0:
+            kp = kp_limit
+            ph2_start = kp_limit
+        elif t_closest > 0.0 and h2 == 0.0 and kp != kp_limit:
+            t_turn = t_closest
+            ph2_start = kp_limit
+    else:
+        turn = -offset / slope if slope != 0.0 else inf
+        if 0.0 < turn < inf:
+            t_turn = turn
+            if reuse:
+                ph2_start = lookups[7]
+            else:
+                ph2_start = phi_zone(
+                    ox + turn * dx, oy + turn * dy, oz + turn * dz, phi_edges, phi_kind
+                )
+                lookups[7] = ph2_start
+            ph1_steps = abs(ph2_start - kp)
+        ph2_steps = abs(kp_limit - ph2_start)
+    # Only through the origin does the first branch end in another zone than
+    # the second starts in: phi jumps between opposite directions there.
+    ph_jump = 1 if ph1_steps == 0 and ph2_start != kp else 0
+    return kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump
+
+
+@jit(inline="always")
+def theta_times(ox, oz, dx, dz, jt, jt_limit, th_sigma, th_steps, t_axis, theta_sin, theta_cos,
+                theta_full, t_final, slack, times, zones):
+    """Phase 2 for theta: the crossing times and zones entered, in order, up to
+    ``t_final``, into ``times[THETA, 1:]`` and ``zones[THETA, 1:]``; returns their number."""
+    n_theta = theta_sin.shape[0] - 1
+    n_zones_theta = n_theta if theta_full else n_theta + 1
+    n_t = 0
+    if t_axis <= t_final:
+        times[THETA, 1] = t_axis
+        zones[THETA, 1] = jt_limit
+        n_t = 1
+    zone = jt
+    t_prev = 0.0
+    for _ in range(th_steps):
+        edge = _theta_edge_ahead(zone, th_sigma, n_theta)
+        t_prev = _clamp(
+            _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), t_prev, np.inf, slack
+        )
+        if t_prev > t_final:
+            break
+        zone += th_sigma
+        if zone == n_zones_theta:
+            zone = 0
+        elif zone < 0:
+            zone = n_zones_theta - 1
+        times[THETA, n_t + 1] = t_prev
+        zones[THETA, n_t + 1] = zone
+        n_t += 1
+    return n_t
+
+
+@jit(inline="always")
+def phi_times(oy, dy, ab, a2, b2, kp, kp_limit, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump,
+              phi_tan2, phi_nappe, t_final, slack, times, zones):
+    """Phase 2 for phi: as ``theta_times``, into row ``PHI``; returns their number."""
+    inf = np.inf
+    n_p = 0
+    zone = kp
+    t_prev = 0.0
+    done = False  # a crossing past t_final ends the list
+    sigma = 1 if ph2_start > kp else -1
+    for _ in range(ph1_steps):
+        edge = zone + 1 if sigma > 0 else zone
+        t_prev = _clamp(
+            _cone_time(oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], True, 0.0, slack),
+            t_prev, t_turn, slack,
+        )
+        if t_prev > t_final:
+            done = True
+            break
+        zone += sigma
+        times[PHI, n_p + 1] = t_prev
+        zones[PHI, n_p + 1] = zone
+        n_p += 1
+    if ph_jump == 1:
+        t_prev = _clamp(t_turn, t_prev, inf, slack)
+        if t_prev > t_final:
+            done = True
+        else:
+            zone = ph2_start
+            times[PHI, n_p + 1] = t_prev
+            zones[PHI, n_p + 1] = zone
+            n_p += 1
+    if not done:
+        sigma = 1 if kp_limit > zone else -1
+        branch_start = t_turn if t_turn < inf else 0.0
+        for _ in range(ph2_steps):
+            edge = zone + 1 if sigma > 0 else zone
+            t_prev = _clamp(
+                _cone_time(
+                    oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], False, branch_start, slack
+                ),
+                t_prev, inf, slack,
+            )
+            if t_prev > t_final:
+                break
+            zone += sigma
+            times[PHI, n_p + 1] = t_prev
+            zones[PHI, n_p + 1] = zone
+            n_p += 1
+    return n_p
+
+
 # What a call of trace_ray does (see its docstring).
 BOUND = 0
 TRACE = 1
@@ -191,7 +366,7 @@ def trace_ray(
     if rho_steps_out == 0:
         return 0  # beyond rho_max and moving away: never inside
 
-    # ---- phase 1, theta: one monotone sweep, or a jump where the line meets the y axis.
+    # ---- phase 1, theta and phi: the zones at the branch ends, so the crossing counts.
     if reuse:
         jt = lookups[2]
         jt_limit = lookups[3]
@@ -200,38 +375,9 @@ def trace_ray(
         jt_limit = theta_zone(dx, dz, theta_edges, theta_kind)
         lookups[2] = jt
         lookups[3] = jt_limit
-    n_zones_theta = n_theta if theta_full else n_theta + 1
-    sweep_sign = oz * dx - ox * dz
-    th_sigma = 0
-    th_steps = 0
-    t_axis = inf  # where the line meets the y axis, when theta jumps there
-    if dx == 0.0 and dz == 0.0:  # not b2 == 0: b2 underflows for |d_x|, |d_z| < 1e-154
-        pass  # parallel to the y axis: theta never changes
-    elif sweep_sign == 0.0:
-        if -ab / b2 > 0.0:
-            if jt != jt_limit:
-                t_axis = -ab / b2
-        else:
-            jt = jt_limit
-    else:
-        th_sigma = 1 if sweep_sign > 0.0 else -1
-        th_steps = ((jt_limit - jt) * th_sigma) % n_zones_theta
-        if th_steps == 0 and reuse:
-            th_steps = lookups[4]
-        elif th_steps == 0:
-            # A zone wider than half a turn: the sweep (< pi) may still leave it
-            # and come round into it again; compare the sweep with the gap.
-            theta_start = azimuth(ox, oz)
-            theta_limit = azimuth(dx, dz)
-            edge = _theta_edge_ahead(jt, th_sigma, n_theta)
-            sweep = ((theta_limit - theta_start) * th_sigma) % TWO_PI
-            gap = ((theta_edges[edge] - theta_start) * th_sigma) % TWO_PI
-            if gap < sweep:
-                th_steps = n_zones_theta
-            lookups[4] = th_steps
-
-    # ---- phase 1, phi: up to two monotone branches split at the turning point
-    # -q/p, or piecewise constant with a jump at the origin.
+    jt, th_sigma, th_steps, t_axis = theta_plan(
+        ox, oz, dx, dz, ab, b2, jt, jt_limit, theta_edges, theta_full, lookups, reuse
+    )
     if reuse:
         kp_limit = lookups[5]
         kp = lookups[6]
@@ -240,37 +386,10 @@ def trace_ray(
         kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
         lookups[5] = kp_limit
         lookups[6] = kp
-    slope = dy * ab - oy * b2
-    offset = dy * a2 - oy * ab
-    t_turn = inf  # end of the first branch
-    ph1_steps = 0
-    ph2_start = kp  # zone at the start of the second branch
-    ph2_steps = 0
-    # h2 == 0 (the line meets the origin) is tested on the cross product, which
-    # is exactly 0 for collinear o and d where ``slope`` may round to 1e-16.
-    if h2 == 0.0 or (slope == 0.0 and offset == 0.0):
-        if ox == 0.0 and oy == 0.0 and oz == 0.0:
-            kp = kp_limit
-            ph2_start = kp_limit
-        elif t_closest > 0.0 and h2 == 0.0 and kp != kp_limit:
-            t_turn = t_closest
-            ph2_start = kp_limit
-    else:
-        turn = -offset / slope if slope != 0.0 else inf
-        if 0.0 < turn < inf:
-            t_turn = turn
-            if reuse:
-                ph2_start = lookups[7]
-            else:
-                ph2_start = phi_zone(
-                    ox + turn * dx, oy + turn * dy, oz + turn * dz, phi_edges, phi_kind
-                )
-                lookups[7] = ph2_start
-            ph1_steps = abs(ph2_start - kp)
-        ph2_steps = abs(kp_limit - ph2_start)
-    # Only through the origin does the first branch end in another zone than
-    # the second starts in: phi jumps between opposite directions there.
-    ph_jump = 1 if ph1_steps == 0 and ph2_start != kp else 0
+    kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
+        ox, oy, oz, dx, dy, dz, ab, a2, b2, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
+        lookups, reuse,
+    )
 
     if mode == BOUND:
         jumps = (1 if t_axis < inf else 0) + ph_jump
@@ -304,73 +423,10 @@ def trace_ray(
     # The last rho crossing leaves the region for good: nothing after it matters.
     t_final = times[RHO, n_r]
 
-    n_t = 0
-    if t_axis <= t_final:
-        times[THETA, 1] = t_axis
-        zones[THETA, 1] = jt_limit
-        n_t = 1
-    zone = jt
-    t_prev = 0.0
-    for _ in range(th_steps):
-        edge = _theta_edge_ahead(zone, th_sigma, n_theta)
-        t_prev = _clamp(
-            _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), t_prev, inf, slack
-        )
-        if t_prev > t_final:
-            break
-        zone += th_sigma
-        if zone == n_zones_theta:
-            zone = 0
-        elif zone < 0:
-            zone = n_zones_theta - 1
-        times[THETA, n_t + 1] = t_prev
-        zones[THETA, n_t + 1] = zone
-        n_t += 1
-
-    n_p = 0
-    zone = kp
-    t_prev = 0.0
-    done = False  # a crossing past t_final ends the list
-    sigma = 1 if ph2_start > kp else -1
-    for _ in range(ph1_steps):
-        edge = zone + 1 if sigma > 0 else zone
-        t_prev = _clamp(
-            _cone_time(oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], True, 0.0, slack),
-            t_prev, t_turn, slack,
-        )
-        if t_prev > t_final:
-            done = True
-            break
-        zone += sigma
-        times[PHI, n_p + 1] = t_prev
-        zones[PHI, n_p + 1] = zone
-        n_p += 1
-    if ph_jump == 1:
-        t_prev = _clamp(t_turn, t_prev, inf, slack)
-        if t_prev > t_final:
-            done = True
-        else:
-            zone = ph2_start
-            times[PHI, n_p + 1] = t_prev
-            zones[PHI, n_p + 1] = zone
-            n_p += 1
-    if not done:
-        sigma = 1 if kp_limit > zone else -1
-        branch_start = t_turn if t_turn < inf else 0.0
-        for _ in range(ph2_steps):
-            edge = zone + 1 if sigma > 0 else zone
-            t_prev = _clamp(
-                _cone_time(
-                    oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], False, branch_start, slack
-                ),
-                t_prev, inf, slack,
-            )
-            if t_prev > t_final:
-                break
-            zone += sigma
-            times[PHI, n_p + 1] = t_prev
-            zones[PHI, n_p + 1] = zone
-            n_p += 1
+    n_t = theta_times(ox, oz, dx, dz, jt, jt_limit, th_sigma, th_steps, t_axis, theta_sin,
+                      theta_cos, theta_full, t_final, slack, times, zones)
+    n_p = phi_times(oy, dy, ab, a2, b2, kp, kp_limit, t_turn, ph1_steps, ph2_start, ph2_steps,
+                    ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones)
 
     # ---- phase 3: merge the three sorted lists; emit while inside.
     # Crossings that coincide (a corner where a sphere, a half-plane and a cone
