@@ -112,6 +112,9 @@ class OccupancyGrid:
         if not np.all(distances > 0.0):  # a point at the sensor is no ray
             keep = distances > 0.0
             offsets, distances = offsets[keep], distances[keep]
+        radial = not np.any(origin)  # the sensor at the grid's centre
+        if not radial:  # unit directions from the full lengths, before max_range cuts them
+            directions = np.ascontiguousarray(offsets / distances[:, None])
         is_hit = np.ones(distances.shape[0], dtype=np.bool_)
         if max_range is not None:
             max_range = float(max_range)
@@ -122,11 +125,11 @@ class OccupancyGrid:
         grid = self.grid
         n_cells = int(np.prod(grid.shape))
         threads = numba.get_num_threads()
-        hit_flags = np.zeros((threads, n_cells), dtype=np.uint8)
         update = (_logit(self.p_hit), _logit(self.p_miss), _logit(self.p_min), _logit(self.p_max))
         distances = np.ascontiguousarray(distances)
-        if not np.any(origin):
-            # The sensor at the grid's centre (the egocentric case): radial rays.
+        if radial:
+            # The egocentric case: every ray is radial.
+            hit_flags = np.zeros((threads, n_cells), dtype=np.uint8)
             free_extent = np.zeros((threads, grid.n_theta * grid.n_phi), dtype=np.int64)
             _kernels.mark_radial(np.ascontiguousarray(offsets), distances, is_hit,
                                  grid.rho_edges, grid.rho_kind, grid.theta_edges, grid.theta_kind,
@@ -134,12 +137,12 @@ class OccupancyGrid:
             _kernels.apply_radial(self.log_odds.reshape(-1), free_extent, hit_flags,
                                   grid.n_theta, grid.n_phi, *update)
             return self
-        directions = np.ascontiguousarray(offsets / distances[:, None])
-        origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
-        free_flags = np.zeros((threads, n_cells), dtype=np.uint8)
-        _kernels.mark_rays(origins, directions, distances, is_hit, *grid.kernel_args(),
-                           free_flags, hit_flags)
-        _kernels.apply_flags(self.log_odds.reshape(-1), free_flags, hit_flags, *update)
+        words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
+        free = words.view(np.uint8)  # the same memory, a byte per cell
+        hits = np.empty(distances.shape[0], dtype=np.int64)
+        _kernels.mark_scan(np.ascontiguousarray(origin), directions, distances, is_hit,
+                           *grid.kernel_args(), free, hits)
+        _kernels.apply_scan(self.log_odds.reshape(-1), free, words, hits, grid.n_rho, *update)
         return self
 
     def decay(self, factor):

@@ -130,24 +130,53 @@ def test_bad_occupancy_input(call, match):
         call(OccupancyGrid(GRID))
 
 
-def test_radial_fast_path_equals_the_general_traversal():
-    from logsph_trace.kernels import occupancy as kernels
-    from logsph_trace.occupancy import _logit
+def _reference_log_odds(grid, points, sensor, max_range=None):
+    """One scan's log-odds from the exact trace (``trace_many`` with t_max), in numpy:
+    every cell a ray crosses is free, the cell holding its end point is hit, a
+    hit wins, each cell updated once."""
+    sensor = np.asarray(sensor, dtype=np.float64)
+    offsets = points - sensor
+    distances = np.linalg.norm(offsets, axis=1)
+    offsets, distances = offsets[distances > 0], distances[distances > 0]
+    is_hit = np.ones(distances.shape[0], dtype=bool)
+    if max_range is not None:
+        is_hit = distances <= max_range
+        distances = np.minimum(distances, max_range)
+    traces = lt.trace_many(grid, np.broadcast_to(sensor, offsets.shape), offsets, t_max=distances)
+    flat = np.ravel_multi_index(tuple(traces.cells.T.astype(np.int64)), grid.shape)
+    free = np.zeros(int(np.prod(grid.shape)), dtype=bool)
+    free[flat] = True
+    last = traces.offsets[1:] - 1
+    ends = (traces.counts > 0) & is_hit
+    ends[ends] &= traces.t_exit[last[ends]] >= distances[ends]
+    hit = np.zeros_like(free)
+    hit[flat[last[ends]]] = True
+    log_odds = np.zeros(free.shape, dtype=np.float32)
+    log_odds[free] = np.float32(np.log(0.4 / 0.6))
+    log_odds[hit] = np.float32(np.log(0.7 / 0.3))
+    return log_odds.reshape(grid.shape)
 
+
+SCANS = [  # (grid, sensor): where the rays start decides the path and the cases met
+    (GRID, [0.0, 0.0, 0.0]),  # radial fast path
+    (GRID, [0.06, 0.08, 0.0]),  # in the gap, off the centre
+    (GRID, [0.0, 0.12, 0.0]),  # on the y axis: every ray's theta is its direction's
+    (GRID, [0.0, 0.0, 0.1]),  # on the theta = 0 half-plane
+    (GRID, [1.3, -0.4, 2.2]),  # inside the region: inward then outward rays
+    (GRID, [9.0, 6.0, -4.0]),  # beyond rho_max
+    (lt.Grid(0.5, 6.0, 20, 24, 12, theta_range=(-1.0, 2.5), phi_range=(-0.6, 1.1),
+             spacing="uniform"), [0.2, 0.1, -0.1]),  # partial ranges, uniform shells
+    (lt.Grid(1.0, 30.0, 12, 36, 18, spacing="paper"), [1.5, 2.0, -0.5]),
+]
+
+
+@pytest.mark.parametrize("grid, sensor", SCANS)
+def test_integrate_equals_the_exact_trace(grid, sensor):
     rng = np.random.default_rng(61)
-    points = rng.normal(size=(4000, 3)) * 4.0
-    points[:50] *= 5.0  # some beyond rho_max
-    fast = OccupancyGrid(GRID).integrate(points, [0.0, 0.0, 0.0], max_range=12.0)
-    general = OccupancyGrid(GRID)
-    distances = np.linalg.norm(points, axis=1)
-    is_hit = distances <= 12.0
-    distances = np.minimum(distances, 12.0)
-    threads = numba.get_num_threads()
-    n_cells = int(np.prod(GRID.shape))
-    free_flags = np.zeros((threads, n_cells), dtype=np.uint8)
-    hit_flags = np.zeros((threads, n_cells), dtype=np.uint8)
-    kernels.mark_rays(np.zeros_like(points), points / np.linalg.norm(points, axis=1)[:, None],
-                      distances, is_hit, *GRID.kernel_args(), free_flags, hit_flags)
-    kernels.apply_flags(general.log_odds.reshape(-1), free_flags, hit_flags,
-                        *(_logit(p) for p in (0.7, 0.4, 0.1192, 0.971)))
-    np.testing.assert_array_equal(fast.log_odds, general.log_odds)
+    points = rng.normal(size=(3000, 3)) * 4.0
+    points[:40] *= 5.0  # some beyond rho_max, cut by max_range
+    points[40:80] = np.asarray(sensor) + 0.01 * rng.normal(size=(40, 3))  # short rays
+    points[80:100] = np.asarray(sensor) * rng.uniform(-2.0, 3.0, size=(20, 1))  # through the centre
+    fast = OccupancyGrid(grid).integrate(points, sensor, max_range=12.0)
+    np.testing.assert_array_equal(fast.log_odds,
+                                  _reference_log_odds(grid, points, sensor, max_range=12.0))

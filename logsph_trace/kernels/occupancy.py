@@ -9,52 +9,174 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .exact import FULL, max_segments, scratch_size, trace_ray
-from .locate import BLOCK, locate, phi_zone, theta_zone
+from .exact import (
+    PHI,
+    THETA,
+    phi_plan,
+    phi_times,
+    scratch_size,
+    theta_plan,
+    theta_times,
+)
+from .locate import BLOCK, locate, phi_zone, rho_zone, theta_zone
 
 
-def _mark_rays(origins, directions, distances, is_hit, rho_edges, rho_sq, rho_kind, theta_edges,
-               theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe,
-               phi_kind, free_flags, hit_flags):
-    """Trace each sensor ray up to its distance; flag the cells it crosses as free and,
-    for a hit, the cell holding its end point (its last segment) as hit.
+# Per-thread flag bits of a cell in one scan.
+FREE = 1
+HIT = 2
 
-    ``free_flags`` and ``hit_flags`` are (threads, n_cells) uint8, one row per thread.
+
+@jit
+def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_edges, theta_sin,
+              theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind,
+              times, zones, lookups, free):
+    """Flag the cells one sensor ray (unit direction) crosses up to ``t_max`` in
+    ``free`` (indexed column-major, see ``apply_scan``); return the index of its
+    end cell when it is a hit that ends inside the region, else -1.
+
+    The angular families are planned and timed by the exact kernel's phases 1
+    and 2 (``theta_plan`` ... ``phi_times``). Between two angular crossings the
+    ray stays in one (theta, phi) column and rho is monotone on each side of
+    the closest approach, so the shells it passes are found by comparing
+    rho^2 = (t - t_c)^2 + h^2 at the crossing with the squared edges: no
+    sphere crossing times and no merge, as only the cells matter here. A cell
+    the ray only touches at a corner (a sliver the exact trace absorbs) may
+    be flagged. ``ir``, ``jt``, ``kp``: the origin's zones, shared by the scan.
     """
-    n_rays = origins.shape[0]
-    n_rho = rho_edges.shape[0] - 1
+    n_rho = rho_sq.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
-    worst = max_segments(n_rho, n_theta, n_phi)
-    size = scratch_size(n_rho, n_theta, n_phi)
+    i = ir
+    if ir == -1:
+        # In the egocentric gap: start where the ray leaves it, on the inner
+        # sphere. Near the centre a ray sweeps through many angular zones (from
+        # the origin's direction to its own) that hold no cell.
+        t_closest = -(ox * dx + oy * dy + oz * dz)
+        t_in = t_closest + np.sqrt(max(rho_sq[0] - (ox * ox + oy * oy + oz * oz - t_closest ** 2),
+                                       0.0))
+        if t_in >= t_max:
+            return -1  # ends in the gap
+        ox += t_in * dx
+        oy += t_in * dy
+        oz += t_in * dz
+        t_max -= t_in
+        i = 0
+        jt = theta_zone(ox, oz, theta_edges, theta_kind)
+        kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
+    slack = 1e-9 * (np.sqrt(rho_sq[n_rho]) + np.sqrt(ox * ox + oy * oy + oz * oz))
+    ab = ox * dx + oz * dz
+    a2 = ox * ox + oz * oz
+    b2 = dx * dx + dz * dz
+    t_closest = -(ox * dx + oy * dy + oz * dz)
+    cross_x = oy * dz - oz * dy
+    cross_y = oz * dx - ox * dz
+    cross_z = ox * dy - oy * dx
+    h2 = cross_x * cross_x + cross_y * cross_y + cross_z * cross_z
+    if h2 >= rho_sq[n_rho]:
+        return -1  # the line misses the outer sphere (or only touches it)
+    t_leave = t_closest + np.sqrt(rho_sq[n_rho] - h2)
+    if t_leave <= 0.0:
+        return -1  # beyond rho_max and moving away
+    t_final = min(t_max, t_leave)
+
+    jt_limit = theta_zone(dx, dz, theta_edges, theta_kind)
+    kp_limit = phi_zone(dx, dy, dz, phi_edges, phi_kind)
+    jt, th_sigma, th_steps, t_axis = theta_plan(
+        ox, oz, dx, dz, ab, b2, jt, jt_limit, theta_edges, theta_full, lookups, False
+    )
+    kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
+        ox, oy, oz, dx, dy, dz, ab, a2, b2, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
+        lookups, False,
+    )
+    n_t = theta_times(ox, oz, dx, dz, jt, jt_limit, th_sigma, th_steps, t_axis, theta_sin,
+                      theta_cos, theta_full, t_final, slack, times, zones)
+    n_p = phi_times(oy, dy, ab, a2, b2, kp, kp_limit, t_turn, ph1_steps, ph2_start, ph2_steps,
+                    ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones)
+    zones[THETA, 0] = jt
+    zones[PHI, 0] = kp
+    times[THETA, n_t + 1] = np.inf
+    times[PHI, n_p + 1] = np.inf
+
+    column = jt * n_phi + kp
+    column_in = jt < n_theta and 0 <= kp < n_phi
+    if column_in and 0 <= i < n_rho:
+        free[column * n_rho + i] = 1
+    falling = t_closest > 0.0
+    done_t = 0
+    done_p = 0
+    # One pass per angular crossing, plus the last stretch to t_final. Each
+    # shell walk moves i one way within [-1, n_rho], so n_rho + 1 steps bound it.
+    for _ in range(n_t + n_p + 1):
+        t_theta = times[THETA, done_t + 1]
+        t_phi = times[PHI, done_p + 1]
+        t_next = min(min(t_theta, t_phi), t_final)
+        if falling:
+            # Inward until the closest approach (or the next crossing before it).
+            r2 = h2 if t_next >= t_closest else (t_next - t_closest) ** 2 + h2
+            for _ in range(n_rho + 1):
+                if i >= 0 and r2 < rho_sq[i]:
+                    i -= 1
+                    if column_in and i >= 0:
+                        free[column * n_rho + i] = 1
+                else:
+                    break
+            falling = t_next < t_closest
+        if not falling:
+            r2 = (t_next - t_closest) ** 2 + h2
+            for _ in range(n_rho + 1):
+                if i < n_rho and r2 >= rho_sq[i + 1]:
+                    i += 1
+                    if column_in and i < n_rho:
+                        free[column * n_rho + i] = 1
+                else:
+                    break
+            if i == n_rho:
+                return -1  # past rho_max and moving away for good
+        if t_next >= t_final:
+            break
+        if t_theta <= t_phi:
+            done_t += 1
+        else:
+            done_p += 1
+        column = zones[THETA, done_t] * n_phi + zones[PHI, done_p]
+        column_in = zones[THETA, done_t] < n_theta and 0 <= zones[PHI, done_p] < n_phi
+        if column_in and 0 <= i < n_rho:
+            free[column * n_rho + i] = 1
+    if is_hit and t_max <= t_leave and column_in and 0 <= i < n_rho:
+        return column * n_rho + i
+    return -1
+
+
+def _mark_scan(origin, directions, distances, is_hit, rho_edges, rho_sq, rho_kind, theta_edges,
+               theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe,
+               phi_kind, free, hits):
+    """Walk every ray of a scan from one ``origin`` (see ``_walk_ray``).
+
+    ``free`` (threads, n_cells) uint8 has one row per thread, so no two
+    threads write the same place; ``hits[row]`` gets ray ``row``'s hit cell
+    (column-major index) or -1.
+    """
+    n_rays = directions.shape[0]
+    ox = origin[0]
+    oy = origin[1]
+    oz = origin[2]
+    ir = rho_zone(ox, oy, oz, rho_edges, rho_kind)
+    jt = theta_zone(ox, oz, theta_edges, theta_kind)
+    kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
+    size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
-        thread = numba.get_thread_id()
+        row_free = free[numba.get_thread_id()]
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
-        cells = np.empty((worst, 3), dtype=np.int32)
-        t_enter = np.empty(worst, dtype=np.float64)
-        t_exit = np.empty(worst, dtype=np.float64)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            count = trace_ray(
-                origins[row, 0], origins[row, 1], origins[row, 2],
-                directions[row, 0], directions[row, 1], directions[row, 2],
-                rho_edges, rho_sq, rho_kind,
+            hits[row] = _walk_ray(
+                ox, oy, oz, directions[row, 0], directions[row, 1], directions[row, 2],
+                distances[row], is_hit[row], ir, jt, kp, rho_sq,
                 theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
                 phi_edges, phi_tan2, phi_nappe, phi_kind,
-                distances[row], times, zones, lookups, cells, t_enter, t_exit, 0, FULL,
+                times, zones, lookups, row_free,
             )
-            # The end point lies in the last segment's cell when the trace
-            # reaches it inside the region.
-            ends_inside = count > 0 and is_hit[row] and t_exit[count - 1] >= distances[row]
-            free_until = count - 1 if ends_inside else count
-            for seg in range(free_until):
-                flat = (cells[seg, 0] * n_theta + cells[seg, 1]) * n_phi + cells[seg, 2]
-                free_flags[thread, flat] = 1
-            if ends_inside:
-                last = count - 1
-                flat = (cells[last, 0] * n_theta + cells[last, 1]) * n_phi + cells[last, 2]
-                hit_flags[thread, flat] = 1
 
 
 @jit
@@ -66,20 +188,41 @@ def _update(log_odds, cell, hit, free, log_hit, log_miss, log_min, log_max):
         log_odds[cell] = max(log_odds[cell] + log_miss, log_min)
 
 
-def _apply_flags(log_odds, free_flags, hit_flags, log_hit, log_miss, log_min, log_max):
-    """OctoMap's update, once per cell per scan: a hit wins over a miss; clamped."""
-    threads = free_flags.shape[0]
-    for cell in prange(log_odds.shape[0]):
-        hit = False
-        free = False
-        for thread in range(threads):
-            hit = hit or hit_flags[thread, cell] != 0
-            free = free or free_flags[thread, cell] != 0
-        _update(log_odds, cell, hit, free, log_hit, log_miss, log_min, log_max)
+def _apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, log_max):
+    """OctoMap's update, once per cell per scan: a hit wins over a miss; clamped.
+
+    ``free`` is indexed column-major, ``(j * n_phi + k) * n_rho + i``, so that
+    a ray's run of shells in one column is one cache line rather than a page
+    apart each (the map is ``(i * n_theta + j) * n_phi + k``). The walk only
+    stores to it: a load-test-store per cell to list the cells it met cost
+    more than this pass. ``words`` is ``free`` seen as uint64 (rows padded to
+    a multiple of 8 bytes): most of a scan's cells are untouched, and eight
+    at a time are skipped with one test.
+    """
+    for ray in range(hits.shape[0]):
+        if hits[ray] >= 0:
+            free[0, hits[ray]] |= HIT
+    threads = free.shape[0]
+    n_cells = log_odds.shape[0]
+    n_columns = n_cells // n_rho
+    for word in prange(words.shape[1]):
+        any_bits = words[0, word]
+        for thread in range(1, threads):
+            any_bits |= words[thread, word]
+        if any_bits == 0:
+            continue
+        for index in range(word * 8, min(word * 8 + 8, n_cells)):
+            bits = 0
+            for thread in range(threads):
+                bits |= free[thread, index]
+            if bits != 0:
+                i = index % n_rho
+                _update(log_odds, i * n_columns + index // n_rho, (bits & HIT) != 0,
+                        (bits & FREE) != 0, log_hit, log_miss, log_min, log_max)
 
 
-mark_rays = jit(_mark_rays, parallel=True)
-apply_flags = jit(_apply_flags, parallel=True)
+mark_scan = jit(_mark_scan, parallel=True)
+apply_scan = jit(_apply_scan, parallel=True)
 
 
 @jit
