@@ -245,27 +245,49 @@ def _run_exact(grid, origins, directions, t_max, parallel):
 
 
 def _run_exact_chunks(grid, origins, directions, t_max, args, threads):
-    """Parallel: one contiguous chunk of rays per thread, each appending into its
-    own region, then the regions packed left in place. Regions are sized from a
-    sample with a half to spare; returns None if a chunk still did not fit."""
+    """Parallel: :func:`trace_regions` into fresh arrays, then the regions packed
+    left in place; None if a chunk did not fit."""
+    traced = trace_regions(grid, origins, directions, t_max, args, threads, _segment_arrays)
+    if traced is None:
+        return None
+    starts, regions, ends, offsets, cells, t_enter, t_exit = traced
+    total = int(_exact.pack_chunks(starts, regions, ends, offsets, cells, t_enter, t_exit))
+    return Traces(offsets, cells[:total], t_enter[:total], t_exit[:total])
+
+
+def trace_regions(grid, origins, directions, t_max, args, chunks, segment_arrays):
+    """One contiguous chunk of rays per thread, each appending into its own region.
+
+    Regions are sized from a sample of the rays with a half to spare (all
+    rays' worst case when there are too few to sample); ``segment_arrays(n)``
+    provides (cells, t_enter, t_exit) with room for at least ``n`` segments.
+    Returns ``(starts, regions, ends, offsets, cells, t_enter, t_exit)``:
+    chunk ``c`` holds rays ``starts[c]:starts[c + 1]``, written from
+    ``regions[c]`` to ``ends[c]``, and ray ``r``'s segments are
+    ``offsets[r]:offsets[r + 1]`` (gaps between regions). None if a chunk did
+    not fit.
+    """
     n_rays = origins.shape[0]
     worst = int(_exact.max_segments(*grid.shape))
     sampled = min(_exact.BLOCK, max(32, n_rays // 16))  # traced twice: keep it small
-    sample = _run_exact_serial(grid, origins[:sampled], directions[:sampled], t_max[:sampled], args)
-    per_ray = sample.cells.shape[0] / sampled
-    starts = np.linspace(0, n_rays, threads + 1).astype(np.int64)
-    room = (1.5 * per_ray * np.diff(starts)).astype(np.int64) + 4 * worst
-    regions = np.zeros(threads + 1, dtype=np.int64)
+    starts = np.linspace(0, n_rays, chunks + 1).astype(np.int64)
+    if n_rays <= sampled:
+        room = np.diff(starts) * worst
+    else:
+        sample = _run_exact_serial(grid, origins[:sampled], directions[:sampled],
+                                   t_max[:sampled], args)
+        per_ray = sample.cells.shape[0] / sampled
+        room = (1.5 * per_ray * np.diff(starts)).astype(np.int64) + 4 * worst
+    regions = np.zeros(chunks + 1, dtype=np.int64)
     np.cumsum(room, out=regions[1:])
-    cells, t_enter, t_exit = _segment_arrays(int(regions[-1]))
+    cells, t_enter, t_exit = segment_arrays(int(regions[-1]))
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0
     ends, reached = _exact.trace_chunks(starts, regions, origins, directions, t_max, *args,
                                         cells, t_enter, t_exit, offsets)
     if np.any(reached != starts[1:]):
         return None
-    total = int(_exact.pack_chunks(starts, regions, ends, offsets, cells, t_enter, t_exit))
-    return Traces(offsets, cells[:total], t_enter[:total], t_exit[:total])
+    return starts, regions, ends, offsets, cells, t_enter, t_exit
 
 
 def _run_exact_bounded(grid, origins, directions, t_max, args):

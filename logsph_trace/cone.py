@@ -6,11 +6,23 @@ crossed, each with the weight of the rays that cross it and the distance at
 which the cone first reaches it.
 """
 
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .api import Traces, _check_grid, _vectors, trace_many
+import numba
+
+from .api import (
+    Traces,
+    _check_grid,
+    _run_exact,
+    _segment_arrays,
+    _vectors,
+    trace_many,
+    trace_regions,
+)
+from .grid import Grid
 from .kernels import cone as _cone
 
 PATTERNS = ("fibonacci", "rings")
@@ -18,6 +30,11 @@ WEIGHTINGS = ("gaussian", "uniform")
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 MIN_DEFAULT_RAYS = 16
 MAX_DEFAULT_RAYS = 1_000_000
+# A cone's rays are traced and aggregated in chunks of at least this many, at
+# most CONE_CHUNKS of them, whatever the thread count: the order of the weight
+# sums, and so their last bits, do not depend on the machine.
+CONE_CHUNK_RAYS = 64
+CONE_CHUNKS = 8
 
 
 @dataclass(frozen=True)
@@ -39,8 +56,14 @@ class ConeTrace:
         The unit directions of the sampled rays.
     ray_weights : numpy.ndarray, float64, shape (n,)
         Their weights, summing to 1.
+    origin : numpy.ndarray, float64, shape (3,)
+        The cone's apex.
+    grid : Grid
+        The grid traced.
     traces : Traces
         The traces of the individual rays, in the order of ``directions``.
+        :func:`trace_cone` does not keep them (storing every segment cost
+        more than the aggregation); they are traced again on first access.
     """
 
     cells: np.ndarray
@@ -48,7 +71,16 @@ class ConeTrace:
     t_first: np.ndarray
     directions: np.ndarray
     ray_weights: np.ndarray
-    traces: Traces
+    origin: np.ndarray
+    grid: Grid = field(repr=False)
+    _traces: Traces = field(default=None, repr=False, compare=False)
+
+    @property
+    def traces(self):
+        if self._traces is None:
+            traces = _trace_rays(self.grid, self.origin, self.directions)
+            object.__setattr__(self, "_traces", traces)  # a cache, not a change of value
+        return self._traces
 
     def __len__(self):
         return self.cells.shape[0]
@@ -186,18 +218,32 @@ def _sample(grid, origin, direction, half_angle, n_rays, pattern, weighting, sig
     return directions, _ray_weights(angles, half_angle, weighting, sigma)
 
 
-def _aggregate(grid, traces, directions, ray_weights, segment_weights=None, normalise=True):
+def _chunk_starts(n_rays):
+    """Boundaries of a cone's chunks of rays (see ``CONE_CHUNKS``)."""
+    chunks = max(1, min(CONE_CHUNKS, n_rays // CONE_CHUNK_RAYS))
+    return np.linspace(0, n_rays, chunks + 1).astype(np.int64)
+
+
+def _aggregate(grid, offsets, cells, t_enter, axis, weights, per_segment=False, normalise=True,
+               chunks=None):
     """Weighted cells of a cone's traces, ordered by first reach.
 
-    ``segment_weights`` defaults to each ray's weight; ``normalise`` scales the
-    cell weights to sum to 1.
+    ``offsets``, ``cells``, ``t_enter``: packed CSR, or the unpacked regions
+    of :func:`~logsph_trace.api.trace_regions` with ``chunks = (starts,
+    regions)``. ``weights`` are per ray, or per segment with ``per_segment``;
+    ``axis`` is a direction near the cone's axis; ``normalise`` scales the
+    cell weights to sum to 1. The rays are aggregated in chunks (see
+    ``CONE_CHUNKS``), in parallel.
     """
-    per_segment = segment_weights is not None
-    j_axis = grid.cell_of(grid.rho_max * 0.5 * directions[0])[1]
+    if chunks is None:
+        starts = _chunk_starts(offsets.shape[0] - 1)
+        firsts = offsets[starts[:-1]]
+    else:
+        starts, firsts = chunks[0], chunks[1][:-1]
+    j_axis = grid.cell_of(grid.rho_max * 0.5 * axis)[1]
     j_shift = (grid.n_theta // 2 - max(int(j_axis), 0)) % grid.n_theta
     cells, weights, t_first = _cone.aggregate(
-        traces.offsets, traces.cells, traces.t_enter,
-        segment_weights if per_segment else ray_weights, per_segment,
+        offsets, starts, np.ascontiguousarray(firsts), cells, t_enter, weights, per_segment,
         grid.n_rho, grid.n_theta, j_shift,
     )
     order = np.argsort(t_first, kind="stable")
@@ -206,6 +252,31 @@ def _aggregate(grid, traces, directions, ray_weights, segment_weights=None, norm
     if normalise and total > 0:
         weights = weights / total
     return cells[order], weights, t_first[order]
+
+
+def _trace_rays(grid, origin, directions):
+    """The cone's rays exactly as given (already unit: no renormalising, which
+    could move them by an ulp), all threads."""
+    origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
+    return _run_exact(grid, origins, directions, np.full(directions.shape[0], np.inf), True)
+
+
+_scratch = threading.local()
+
+
+def _scratch_segments(length):
+    """Segment arrays reused by this Python thread's cone traces, grown as needed.
+
+    A cone's segments are read once, by the aggregation; faulting in fresh
+    pages for them each call took longer than tracing into them (1.0 of 2.0
+    ms for a 1,000-ray cone, measured). Per Python thread, so concurrent
+    calls never share them.
+    """
+    held = getattr(_scratch, "segments", None)
+    if held is None or held[0].shape[0] < length:
+        held = _segment_arrays(length + length // 4)
+        _scratch.segments = held
+    return held
 
 
 def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibonacci",
@@ -248,9 +319,21 @@ def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibona
     origin = _vectors("origin", origin)[0]
     directions, ray_weights = _sample(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
-    traces = trace_many(grid, np.broadcast_to(origin, directions.shape), directions)
-    cells, weights, t_first = _aggregate(grid, traces, directions, ray_weights)
-    return ConeTrace(cells, weights, t_first, directions, ray_weights, traces)
+    n_rays = directions.shape[0]
+    origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
+    no_limit = np.full(n_rays, np.inf)
+    traced = trace_regions(grid, origins, directions, no_limit, grid.kernel_args(),
+                           len(_chunk_starts(n_rays)) - 1, _scratch_segments)
+    if traced is None:  # a chunk outgrew its estimated room
+        traces = _trace_rays(grid, origin, directions)
+        cells, weights, t_first = _aggregate(grid, traces.offsets, traces.cells, traces.t_enter,
+                                             directions[0], ray_weights)
+    else:
+        traces = None
+        starts, regions, _, offsets, segment_cells, t_enter, _ = traced
+        cells, weights, t_first = _aggregate(grid, offsets, segment_cells, t_enter, directions[0],
+                                             ray_weights, chunks=(starts, regions))
+    return ConeTrace(cells, weights, t_first, directions, ray_weights, origin, grid, traces)
 
 
 def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fibonacci",
@@ -280,14 +363,17 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     counts = [len(sample[0]) for sample in samples]
     all_origins = np.repeat(origins, counts, axis=0)
     all_directions = np.concatenate([sample[0] for sample in samples])
-    traces = trace_many(grid, all_origins, all_directions)
+    traces = _run_exact(grid, np.ascontiguousarray(all_origins), all_directions,
+                        np.full(all_directions.shape[0], np.inf), True)
     results = []
     first = 0
     for (cone_directions_, ray_weights), count in zip(samples, counts):
         lo, hi = traces.offsets[first], traces.offsets[first + count]
         own = Traces(traces.offsets[first:first + count + 1] - lo, traces.cells[lo:hi],
                      traces.t_enter[lo:hi], traces.t_exit[lo:hi])
-        cells, weights, t_first = _aggregate(grid, own, cone_directions_, ray_weights)
-        results.append(ConeTrace(cells, weights, t_first, cone_directions_, ray_weights, own))
+        cells, weights, t_first = _aggregate(grid, own.offsets, own.cells, own.t_enter,
+                                             cone_directions_[0], ray_weights)
+        results.append(ConeTrace(cells, weights, t_first, cone_directions_, ray_weights,
+                                 origins[len(results)], grid, own))
         first += count
     return results

@@ -276,8 +276,9 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
         traces.offsets, traces.cells, traces.t_exit, occupancy.log_odds.reshape(-1),
         grid.n_theta, grid.n_phi, ray_weights, min_distance, unknown, free_below,
     )
-    cells, values, t_first = _aggregate(grid, traces, directions, ray_weights,
-                                        segment_weights=segment_values, normalise=False)
+    cells, values, t_first = _aggregate(grid, traces.offsets, traces.cells, traces.t_enter,
+                                        directions[0], segment_values, per_segment=True,
+                                        normalise=False)
     if dense:
         out = np.zeros(grid.shape)
         out[tuple(cells.T)] = values

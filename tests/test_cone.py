@@ -108,6 +108,45 @@ def test_many_cones_equal_one_at_a_time():
         np.testing.assert_allclose(result.weights, alone.weights)
 
 
+def _same_cone(one, other):
+    np.testing.assert_array_equal(one.cells, other.cells)
+    np.testing.assert_array_equal(one.weights, other.weights)
+    np.testing.assert_array_equal(one.t_first, other.t_first)
+
+
+def test_a_cone_is_the_same_on_every_path(monkeypatch):
+    # trace_cone aggregates straight from per-thread regions in reused scratch;
+    # one thread, the packed fallback and trace_cones must agree bit for bit.
+    import numba
+
+    import logsph_trace.cone as cone_module
+
+    args = (GRID, ORIGIN, GAZE, np.radians(8))
+    regions = trace_cone(*args, n_rays=700)
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        _same_cone(trace_cone(*args, n_rays=700), regions)
+    finally:
+        numba.set_num_threads(before)
+    _same_cone(trace_cones(GRID, [ORIGIN], [GAZE], np.radians(8), n_rays=700)[0], regions)
+    monkeypatch.setattr(cone_module, "trace_regions", lambda *a: None)  # a chunk did not fit
+    fallback = trace_cone(*args, n_rays=700)
+    _same_cone(fallback, regions)
+    assert fallback._traces is not None and regions._traces is None
+
+
+def test_reused_scratch_does_not_change_earlier_results():
+    small = trace_cone(GRID, ORIGIN, GAZE, np.radians(3), n_rays=200)
+    kept = (small.cells.copy(), small.weights.copy(), small.t_first.copy())
+    trace_cone(GRID, [1.0, 0.2, -2.0], [0.3, 0.1, 1.0], np.radians(20), n_rays=3000)
+    np.testing.assert_array_equal(small.cells, kept[0])
+    np.testing.assert_array_equal(small.weights, kept[1])
+    np.testing.assert_array_equal(small.t_first, kept[2])
+    weights, first = _union_of_rays(small)  # its traces, traced again on access
+    assert set(map(tuple, small.cells.tolist())) == set(weights)
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [
