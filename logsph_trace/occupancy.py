@@ -129,13 +129,14 @@ class OccupancyGrid:
         distances = np.ascontiguousarray(distances)
         if radial:
             # The egocentric case: every ray is radial.
-            hit_flags = np.zeros((threads, n_cells), dtype=np.uint8)
             free_extent = np.zeros((threads, grid.n_theta * grid.n_phi), dtype=np.int64)
+            hits = np.empty(distances.shape[0], dtype=np.int64)
             _kernels.mark_radial(np.ascontiguousarray(offsets), distances, is_hit,
                                  grid.rho_edges, grid.rho_kind, grid.theta_edges, grid.theta_kind,
-                                 grid.phi_edges, grid.phi_kind, free_extent, hit_flags)
-            _kernels.apply_radial(self.log_odds.reshape(-1), free_extent, hit_flags,
-                                  grid.n_theta, grid.n_phi, *update)
+                                 grid.phi_edges, grid.phi_kind, free_extent, hits)
+            _kernels.apply_radial(self.log_odds.reshape(-1), free_extent, hits,
+                                  np.zeros(n_cells, dtype=np.uint8), grid.n_theta, grid.n_phi,
+                                  *update)
             return self
         words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
         free = words.view(np.uint8)  # the same memory, a byte per cell

@@ -264,13 +264,14 @@ def first_occupied(offsets, cells, t_exit, log_odds, n_theta, n_phi, ray_weights
 
 
 def _mark_radial(points, distances, is_hit, rho_edges, rho_kind, theta_edges, theta_kind,
-                 phi_edges, phi_kind, free_extent, hit_flags):
+                 phi_edges, phi_kind, free_extent, hits):
     """The sensor at the grid's origin: every ray is radial, so its cells are one
     (theta, phi) column, free up to the shell holding its end point.
 
     ``free_extent`` (threads, n_theta * n_phi) int64 records, per thread and
-    column, how many shells from the centre are free; ``hit_flags`` as in
-    ``_mark_rays``. Three lookups per ray instead of a traversal.
+    column, how many shells from the centre are free; ``hits[row]`` gets the
+    map index of ray ``row``'s hit cell, or -1. Three lookups per ray instead
+    of a traversal.
     """
     n_rays = points.shape[0]
     n_rho = rho_edges.shape[0] - 1
@@ -279,6 +280,7 @@ def _mark_radial(points, distances, is_hit, rho_edges, rho_kind, theta_edges, th
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         thread = numba.get_thread_id()
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            hits[row] = -1
             x = points[row, 0]
             y = points[row, 1]
             z = points[row, 2]
@@ -293,24 +295,34 @@ def _mark_radial(points, distances, is_hit, rho_edges, rho_kind, theta_edges, th
             if free > free_extent[thread, column]:
                 free_extent[thread, column] = free
             if hit:
-                hit_flags[thread, (shell * n_theta + j) * n_phi + k] = 1
+                hits[row] = (shell * n_theta + j) * n_phi + k
 
 
-def _apply_radial(log_odds, free_extent, hit_flags, n_theta, n_phi, log_hit, log_miss, log_min,
-                  log_max):
-    """``_apply_flags`` for the radial case: cell (i, j, k) is free if i is below a
-    thread's free extent of its column. Loops over shells and columns (no division)."""
+def _apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit, log_miss,
+                  log_min, log_max):
+    """``apply_scan`` for the radial case: cell (i, j, k) is free if i is below a
+    thread's free extent of its column; ``hit_mask`` (n_cells,) uint8, zero,
+    marks the hit cells so a hit wins and each is updated once. Only the
+    columns' free runs and the hits are visited, not the whole map.
+    """
+    for ray in range(hits.shape[0]):
+        if hits[ray] >= 0:
+            hit_mask[hits[ray]] = 1
     threads = free_extent.shape[0]
     n_columns = n_theta * n_phi
-    for shell in prange(log_odds.shape[0] // n_columns):
-        for column in range(n_columns):
+    for column in prange(n_columns):
+        extent = free_extent[0, column]
+        for thread in range(1, threads):
+            extent = max(extent, free_extent[thread, column])
+        for shell in range(extent):
             cell = shell * n_columns + column
-            hit = False
-            free = False
-            for thread in range(threads):
-                hit = hit or hit_flags[thread, cell] != 0
-                free = free or shell < free_extent[thread, column]
-            _update(log_odds, cell, hit, free, log_hit, log_miss, log_min, log_max)
+            if hit_mask[cell] == 0:
+                _update(log_odds, cell, False, True, log_hit, log_miss, log_min, log_max)
+    for ray in range(hits.shape[0]):
+        cell = hits[ray]
+        if cell >= 0 and hit_mask[cell] != 0:
+            _update(log_odds, cell, True, False, log_hit, log_miss, log_min, log_max)
+            hit_mask[cell] = 0
 
 
 mark_radial = jit(_mark_radial, parallel=True)
