@@ -256,7 +256,8 @@ def _run_exact_chunks(grid, origins, directions, t_max, args, threads):
 
 
 def trace_regions(grid, origins, directions, t_max, args, chunks, segment_arrays):
-    """One contiguous chunk of rays per thread, each appending into its own region.
+    """``chunks`` contiguous chunks of rays, each appending into its own region
+    (one ``prange`` iteration each).
 
     Regions are sized from a sample of the rays with a half to spare (all
     rays' worst case when there are too few to sample); ``segment_arrays(n)``

@@ -11,15 +11,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-import numba
-
 from .api import (
     Traces,
     _check_grid,
     _run_exact,
     _segment_arrays,
     _vectors,
-    trace_many,
     trace_regions,
 )
 from .grid import Grid
@@ -255,8 +252,8 @@ def _aggregate(grid, offsets, cells, t_enter, axis, weights, per_segment=False, 
 
 
 def _trace_rays(grid, origin, directions):
-    """The cone's rays exactly as given (already unit: no renormalising, which
-    could move them by an ulp), all threads."""
+    """Cone rays exactly as given (already unit: no renormalising, which could
+    move them by an ulp), all threads; ``origin`` (3,) or one per ray."""
     origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
     return _run_exact(grid, origins, directions, np.full(directions.shape[0], np.inf), True)
 
@@ -363,8 +360,7 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     counts = [len(sample[0]) for sample in samples]
     all_origins = np.repeat(origins, counts, axis=0)
     all_directions = np.concatenate([sample[0] for sample in samples])
-    traces = _run_exact(grid, np.ascontiguousarray(all_origins), all_directions,
-                        np.full(all_directions.shape[0], np.inf), True)
+    traces = _trace_rays(grid, all_origins, all_directions)
     results = []
     first = 0
     for (cone_directions_, ray_weights), count in zip(samples, counts):

@@ -127,6 +127,27 @@ def scratch_size(n_rho, n_theta, n_phi):
 
 
 @jit(inline="always")
+def line_geometry(ox, oy, oz, dx, dy, dz):
+    """What the families share about the line o + t d (unit d).
+
+    Returns ``ab``, ``a2``, ``b2``: the x-z dot products A.B, |A|^2, |B|^2 of
+    A = (o_x, o_z), B = (d_x, d_z), used by theta and phi; ``t_closest``, the
+    time of closest approach to the centre; ``h2``, the squared distance
+    there, from the cross product (exactly 0 for a line through the centre),
+    so rho(t)^2 = (t - t_closest)^2 + h2.
+    """
+    ab = ox * dx + oz * dz
+    a2 = ox * ox + oz * oz
+    b2 = dx * dx + dz * dz
+    t_closest = -(ox * dx + oy * dy + oz * dz)
+    cross_x = oy * dz - oz * dy
+    cross_y = oz * dx - ox * dz
+    cross_z = ox * dy - oy * dx
+    h2 = cross_x * cross_x + cross_y * cross_y + cross_z * cross_z
+    return ab, a2, b2, t_closest, h2
+
+
+@jit(inline="always")
 def theta_plan(ox, oz, dx, dz, ab, b2, jt, jt_limit, theta_edges, theta_full, lookups, reuse):
     """Phase 1 for theta: one monotone sweep, or a jump where the line meets the y axis.
 
@@ -340,17 +361,9 @@ def trace_ray(
     # further in the past than this is one at infinity (see _clamp).
     slack = 1e-9 * (rho_edges[n_rho] + np.sqrt(ox * ox + oy * oy + oz * oz))
 
-    # x-z projections shared by theta and phi: A = (ox, oz), B = (dx, dz).
-    ab = ox * dx + oz * dz
-    a2 = ox * ox + oz * oz
-    b2 = dx * dx + dz * dz
+    ab, a2, b2, t_closest, h2 = line_geometry(ox, oy, oz, dx, dy, dz)
 
     # ---- phase 1, rho: falls until the closest approach t_c, then rises (Eq. 9a).
-    t_closest = -(ox * dx + oy * dy + oz * dz)
-    cross_x = oy * dz - oz * dy
-    cross_y = oz * dx - ox * dz
-    cross_z = ox * dy - oy * dx
-    h2 = cross_x * cross_x + cross_y * cross_y + cross_z * cross_z
     if reuse:
         ir = lookups[0]
         ir_turn = lookups[1]

@@ -12,6 +12,7 @@ from .._jit import jit
 from .exact import (
     PHI,
     THETA,
+    line_geometry,
     phi_plan,
     phi_times,
     scratch_size,
@@ -51,9 +52,8 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
         # In the egocentric gap: start where the ray leaves it, on the inner
         # sphere. Near the centre a ray sweeps through many angular zones (from
         # the origin's direction to its own) that hold no cell.
-        t_closest = -(ox * dx + oy * dy + oz * dz)
-        t_in = t_closest + np.sqrt(max(rho_sq[0] - (ox * ox + oy * oy + oz * oz - t_closest ** 2),
-                                       0.0))
+        _, _, _, t_closest, h2 = line_geometry(ox, oy, oz, dx, dy, dz)
+        t_in = t_closest + np.sqrt(max(rho_sq[0] - h2, 0.0))
         if t_in >= t_max:
             return -1  # ends in the gap
         ox += t_in * dx
@@ -64,14 +64,7 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
         jt = theta_zone(ox, oz, theta_edges, theta_kind)
         kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
     slack = 1e-9 * (np.sqrt(rho_sq[n_rho]) + np.sqrt(ox * ox + oy * oy + oz * oz))
-    ab = ox * dx + oz * dz
-    a2 = ox * ox + oz * oz
-    b2 = dx * dx + dz * dz
-    t_closest = -(ox * dx + oy * dy + oz * dz)
-    cross_x = oy * dz - oz * dy
-    cross_y = oz * dx - ox * dz
-    cross_z = ox * dy - oy * dx
-    h2 = cross_x * cross_x + cross_y * cross_y + cross_z * cross_z
+    ab, a2, b2, t_closest, h2 = line_geometry(ox, oy, oz, dx, dy, dz)
     if h2 >= rho_sq[n_rho]:
         return -1  # the line misses the outer sphere (or only touches it)
     t_leave = t_closest + np.sqrt(rho_sq[n_rho] - h2)
