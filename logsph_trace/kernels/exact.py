@@ -40,44 +40,53 @@ from .locate import BLOCK, TWO_PI, azimuth, locate, phi_zone, rho_zone, theta_zo
 @jit
 def _sphere_time(t_closest, h2, radius2, outward):
     """Crossing of a sphere on the inward or outward half of the line (Eq. 9a, corrected)."""
-    half_chord = np.sqrt(max(radius2 - h2, 0.0))
+    half_chord = math.sqrt(max(radius2 - h2, 0.0))
     if outward:
         return t_closest + half_chord
     return t_closest - half_chord
 
 
 @jit
-def _plane_time(ox, oz, dx, dz, edge_sin, edge_cos):
-    """Crossing of the vertical plane holding the half-plane theta = edge (Eq. 9c)."""
-    return -(ox * edge_cos - oz * edge_sin) / (dx * edge_cos - dz * edge_sin)
+def _plane_time(t_closest, cx, cz, dx, dz, edge_sin, edge_cos):
+    """Crossing of the vertical plane holding the half-plane theta = edge (Eq. 9c),
+    measured from the closest point ``c`` (see ``line_geometry``)."""
+    return t_closest - (cx * edge_cos - cz * edge_sin) / (dx * edge_cos - dz * edge_sin)
 
 
 @jit
-def _cone_time(oy, dy, ab, a2, b2, tan2, nappe, first_branch, branch_start, slack):
+def _cone_time(t_closest, cy, dy, cab, ca2, b2, tan2, nappe, first_branch, branch_start, slack):
     """Crossing of the elevation cone phi = edge on its own nappe, within the current branch.
 
-    ``(o_y + t d_y)^2 = tan(phi)^2 ((o_x + t d_x)^2 + (o_z + t d_z)^2)`` solved
-    with the cancellation-free quadratic formula (a ray parallel to a generatrix
-    has ``a ~ 0``); ``ab``, ``a2``, ``b2`` are the x-z dot products A.B, |A|^2,
-    |B|^2 of origin A and direction B.  A root before ``branch_start`` belongs
-    to the other branch.  On the branch before phi's turning point the earlier
-    root is the crossing, after it the later one.  Returns ``inf`` when no root
-    qualifies: the crossing is at infinity (a limit direction on the cone).
+    ``(c_y + u d_y)^2 = tan(phi)^2 ((c_x + u d_x)^2 + (c_z + u d_z)^2)``, with
+    ``u = t - t_closest`` measured from the line's closest point ``c``, solved
+    with the cancellation-free quadratic formula (a ray parallel to a
+    generatrix has ``a ~ 0``); ``cab``, ``ca2``, ``b2`` are the x-z dot
+    products C.B, |C|^2, |B|^2 of C = (c_x, c_z) and the direction B.
+    Written about ``c`` rather than the origin, the coefficients keep their
+    accuracy when the line passes near the centre: there ``c`` and every
+    coefficient are small, where the origin's would be differences of large
+    terms (rounding ``c`` by eps |o| moved crossings by sqrt(eps) |o|).
+    A root before ``branch_start`` belongs to the other branch. On the branch
+    before phi's turning point the earlier root is the crossing, after it the
+    later one. Returns ``inf`` when no root qualifies: the crossing is at
+    infinity (a limit direction on the cone).
     """
     if nappe == 0.0:
-        return -oy / dy
+        return t_closest - cy / dy
     a = dy * dy - tan2 * b2
-    half_b = oy * dy - tan2 * ab
-    c = oy * oy - tan2 * a2
+    half_b = cy * dy - tan2 * cab
+    c = cy * cy - tan2 * ca2
     disc = max(half_b * half_b - a * c, 0.0)
     q = -(half_b + math.copysign(math.sqrt(disc), half_b))
-    t1 = q / a
-    t2 = c / q
+    u1 = q / a
+    u2 = c / q
+    t1 = t_closest + u1
+    t2 = t_closest + u2
     earliest = branch_start - slack
     # Written as selects, not branches: ``earliest <= t < inf`` also rejects NaN,
     # and the nappe test keeps the cone half whose sign of y matches phi.
-    ok1 = (t1 >= earliest) & (t1 < np.inf) & (nappe * (oy + t1 * dy) >= 0.0)
-    ok2 = (t2 >= earliest) & (t2 < np.inf) & (nappe * (oy + t2 * dy) >= 0.0)
+    ok1 = (t1 >= earliest) & (t1 < np.inf) & (nappe * (cy + u1 * dy) >= 0.0)
+    ok2 = (t2 >= earliest) & (t2 < np.inf) & (nappe * (cy + u2 * dy) >= 0.0)
     if first_branch:
         return min(t1 if ok1 else np.inf, t2 if ok2 else np.inf)
     latest = max(t1 if ok1 else -np.inf, t2 if ok2 else -np.inf)
@@ -85,26 +94,39 @@ def _cone_time(oy, dy, ab, a2, b2, tan2, nappe, first_branch, branch_start, slac
 
 
 @jit
-def _clamp(t_candidate, t_low, t_high, slack):
+def _clamp(t_candidate, t_low, t_high, slack, last):
     """Keep a counted crossing inside its branch ``[t_low, t_high]``.
 
     A crossing a hair before ``t_low`` is a simultaneous one rounded the other
-    way: it happens now. One clearly in the past (by more than ``slack``) is a
-    crossing at infinity: the branch end was looked up exactly on a boundary
-    the ray only approaches (a limit direction on a half-plane or cone, where
-    the closed form returns +-inf or a huge value of either sign); it happens
-    at the branch end, i.e. never for the last branch. NaN happens now.
+    way: it happens now. One clearly in the past (by more than ``slack``) is
+    one of two things. A crossing at infinity: the branch end was looked up
+    exactly on a boundary the ray only approaches (a limit direction on a
+    half-plane or cone), and the closed form divides by ~0, landing ~1e16
+    scenes away; it happens at the branch end, i.e. never for the last branch.
+    Or a simultaneous one that rounding of a lookup, magnified by a ray
+    nearly parallel to the boundary, put up to about a scene before ``t_low``
+    (an origin on a half-plane, left at 1e-14 rad, or a sensor on the y axis
+    restarted at the gap's exit): it happens now. Crossings are counted in
+    order, so only the ``last`` of a branch can be at infinity. NaN: now.
     """
-    t_kept = t_high if t_candidate < t_low - slack else t_candidate
+    at_infinity = last and t_candidate < t_low - 1e9 * slack  # slack is 1e-9 of the scene
+    t_kept = t_high if at_infinity else t_candidate
     t_kept = t_kept if t_kept >= t_low else t_low  # also NaN -> now
     return t_kept if t_kept <= t_high else t_high
 
 
 @jit
-def _theta_edge_ahead(zone, sigma, n_theta):
-    """Edge index met when leaving azimuthal ``zone`` in direction ``sigma``."""
+def _theta_edge_ahead(zone, sigma, n_theta, full):
+    """Edge index met when leaving azimuthal ``zone`` in direction ``sigma``.
+
+    On a full circle the seam is the last edge both ways: the lookup wraps an
+    azimuth at or above ``theta_edges[-1]`` into zone 0, and ``theta_edges[0]``
+    + 2 pi rounds to another plane a few 1e-16 rad away.
+    """
     if sigma > 0:
         return zone + 1 if zone < n_theta else 0
+    if zone == 0 and full:
+        return n_theta
     return zone if zone < n_theta else n_theta
 
 
@@ -130,46 +152,60 @@ def scratch_size(n_rho, n_theta, n_phi):
 def line_geometry(ox, oy, oz, dx, dy, dz):
     """What the families share about the line o + t d (unit d).
 
-    Returns ``ab``, ``a2``, ``b2``: the x-z dot products A.B, |A|^2, |B|^2 of
-    A = (o_x, o_z), B = (d_x, d_z), used by theta and phi; ``t_closest``, the
-    time of closest approach to the centre; ``h2``, the squared distance
-    there, from the cross product (exactly 0 for a line through the centre),
-    so rho(t)^2 = (t - t_closest)^2 + h2.
+    Returns ``t_closest``, the time of closest approach to the centre; ``h2``,
+    the squared distance there, from the cross product o x d (exactly 0 for a
+    line through the centre), so rho(t)^2 = (t - t_closest)^2 + h2; and the
+    closest point itself, ``c = d x (o x d) = o + t_closest d``.
+
+    The angular families are solved about ``c`` (times ``u = t - t_closest``),
+    not about the origin. Their singular sets are the centre (phi and theta
+    jump there) and the y axis (theta jumps), and near them the quantities
+    that decide the plan -- phi's turning point, the sweep of theta, where the
+    line meets the axis -- are small differences of large products when
+    written with the origin, so rounding of eps |o| could move phi's turning
+    point by eps |o|^2 / h, far past the cells it separates. Written with
+    ``c`` (of size h) they are accurate to eps relative, and since ``c`` and
+    the cross product are computed once, every family plans and times one and
+    the same line, within eps |o| of the given one.
     """
-    ab = ox * dx + oz * dz
-    a2 = ox * ox + oz * oz
-    b2 = dx * dx + dz * dz
     t_closest = -(ox * dx + oy * dy + oz * dz)
     cross_x = oy * dz - oz * dy
     cross_y = oz * dx - ox * dz
     cross_z = ox * dy - oy * dx
     h2 = cross_x * cross_x + cross_y * cross_y + cross_z * cross_z
-    return ab, a2, b2, t_closest, h2
+    cx = dy * cross_z - dz * cross_y
+    cy = dz * cross_x - dx * cross_z
+    cz = dx * cross_y - dy * cross_x
+    return t_closest, h2, cx, cy, cz
 
 
 @jit(inline="always")
-def theta_plan(ox, oz, dx, dz, ab, b2, jt, jt_limit, theta_edges, theta_full, lookups, reuse):
+def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, jt, jt_limit, theta_edges, theta_full, lookups,
+               reuse):
     """Phase 1 for theta: one monotone sweep, or a jump where the line meets the y axis.
 
     ``jt`` and ``jt_limit`` are the zones of the origin and of the direction
-    (the limit as t -> inf). Returns the start zone, the sweep sign, the
-    number of half-planes crossed and ``t_axis``, the time of the jump (inf
-    when none). The ambiguous case of a zone wider than half a turn is
-    decided once and kept in ``lookups[4]`` (read back when ``reuse``).
+    (the limit as t -> inf); ``c`` is the line's closest point to the centre
+    (``line_geometry``). Returns the start zone, the sweep sign, the number of
+    half-planes crossed and ``t_axis``, the time of the jump (inf when none).
+    The ambiguous case of a zone wider than half a turn is decided once and
+    kept in ``lookups[4]`` (read back when ``reuse``).
     """
     inf = np.inf
     n_theta = theta_edges.shape[0] - 1
     n_zones_theta = n_theta if theta_full else n_theta + 1
-    sweep_sign = oz * dx - ox * dz
+    # (o x d)_y, written with c (= o + t_c d): the sign of the sweep.
+    sweep_sign = cz * dx - cx * dz
     th_sigma = 0
     th_steps = 0
     t_axis = inf
     if dx == 0.0 and dz == 0.0:  # not b2 == 0: b2 underflows for |d_x|, |d_z| < 1e-154
         pass  # parallel to the y axis: theta never changes
     elif sweep_sign == 0.0:
-        if -ab / b2 > 0.0:
+        meets_axis = t_closest - (cx * dx + cz * dz) / (dx * dx + dz * dz)
+        if meets_axis > 0.0:
             if jt != jt_limit:
-                t_axis = -ab / b2
+                t_axis = meets_axis
         else:
             jt = jt_limit
     else:
@@ -182,7 +218,7 @@ def theta_plan(ox, oz, dx, dz, ab, b2, jt, jt_limit, theta_edges, theta_full, lo
             # and come round into it again; compare the sweep with the gap.
             theta_start = azimuth(ox, oz)
             theta_limit = azimuth(dx, dz)
-            edge = _theta_edge_ahead(jt, th_sigma, n_theta)
+            edge = _theta_edge_ahead(jt, th_sigma, n_theta, theta_full)
             sweep = ((theta_limit - theta_start) * th_sigma) % TWO_PI
             gap = ((theta_edges[edge] - theta_start) * th_sigma) % TWO_PI
             if gap < sweep:
@@ -192,27 +228,34 @@ def theta_plan(ox, oz, dx, dz, ab, b2, jt, jt_limit, theta_edges, theta_full, lo
 
 
 @jit(inline="always")
-def phi_plan(ox, oy, oz, dx, dy, dz, ab, a2, b2, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
+def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
              lookups, reuse):
-    """Phase 1 for phi: up to two monotone branches split at the turning point
-    -q/p, or piecewise constant with a jump at the origin.
+    """Phase 1 for phi: up to two monotone branches split at the turning point,
+    or piecewise constant with a jump at the centre.
 
-    ``kp`` and ``kp_limit`` are the zones of the origin and of the direction.
-    Returns the start zone, ``t_turn`` (end of the first branch, inf when
-    none), the crossings on each branch, the zone the second branch starts
-    in, and 1 when phi jumps at ``t_turn``. The zone at the turning point is
-    kept in ``lookups[7]`` (read back when ``reuse``).
+    ``kp`` and ``kp_limit`` are the zones of the origin and of the direction;
+    ``c`` is the line's closest point to the centre. Along c + u d, tan(phi)
+    has a derivative whose numerator is ``slope * u + offset``, so phi turns
+    at ``u = -offset / slope``; with c perpendicular to d these are ``-c_y``
+    and ``d_y h^2``, sums of like-signed terms below, accurate however close
+    the line comes to the centre. Returns the start zone, ``t_turn`` (end of
+    the first branch, inf when none), the crossings on each branch, the zone
+    the second branch starts in, and 1 when phi jumps at ``t_turn``. The zone
+    at the turning point is kept in ``lookups[7]`` (read back when ``reuse``).
     """
     inf = np.inf
-    slope = dy * ab - oy * b2
-    offset = dy * a2 - oy * ab
+    b2 = dx * dx + dz * dz
+    cab = cx * dx + cz * dz
+    ca2 = cx * cx + cz * cz
+    slope = dy * cab - cy * b2
+    offset = dy * ca2 - cy * cab
     t_turn = inf
     ph1_steps = 0
     ph2_start = kp
     ph2_steps = 0
-    # h2 == 0 (the line meets the origin) is tested on the cross product, which
-    # is exactly 0 for collinear o and d where ``slope`` may round to 1e-16.
     if h2 == 0.0 or (slope == 0.0 and offset == 0.0):
+        # Through the centre (h2 is exactly 0 for collinear o and d), or a line
+        # of constant phi: no turning point.
         if ox == 0.0 and oy == 0.0 and oz == 0.0:
             kp = kp_limit
             ph2_start = kp_limit
@@ -221,26 +264,26 @@ def phi_plan(ox, oy, oz, dx, dy, dz, ab, a2, b2, h2, t_closest, kp, kp_limit, ph
             ph2_start = kp_limit
     else:
         turn = -offset / slope if slope != 0.0 else inf
-        if 0.0 < turn < inf:
-            t_turn = turn
+        if -t_closest < turn < inf:
+            t_turn = t_closest + turn
             if reuse:
                 ph2_start = lookups[7]
             else:
                 ph2_start = phi_zone(
-                    ox + turn * dx, oy + turn * dy, oz + turn * dz, phi_edges, phi_kind
+                    cx + turn * dx, cy + turn * dy, cz + turn * dz, phi_edges, phi_kind
                 )
                 lookups[7] = ph2_start
             ph1_steps = abs(ph2_start - kp)
         ph2_steps = abs(kp_limit - ph2_start)
-    # Only through the origin does the first branch end in another zone than
+    # Only through the centre does the first branch end in another zone than
     # the second starts in: phi jumps between opposite directions there.
     ph_jump = 1 if ph1_steps == 0 and ph2_start != kp else 0
     return kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump
 
 
 @jit(inline="always")
-def theta_times(ox, oz, dx, dz, jt, jt_limit, th_sigma, th_steps, t_axis, theta_sin, theta_cos,
-                theta_full, t_final, slack, times, zones):
+def theta_times(cx, cz, dx, dz, t_closest, jt, jt_limit, th_sigma, th_steps, t_axis, theta_sin,
+                theta_cos, theta_full, t_final, slack, times, zones):
     """Phase 2 for theta: the crossing times and zones entered, in order, up to
     ``t_final``, into ``times[THETA, 1:]`` and ``zones[THETA, 1:]``; returns their number."""
     n_theta = theta_sin.shape[0] - 1
@@ -252,10 +295,11 @@ def theta_times(ox, oz, dx, dz, jt, jt_limit, th_sigma, th_steps, t_axis, theta_
         n_t = 1
     zone = jt
     t_prev = 0.0
-    for _ in range(th_steps):
-        edge = _theta_edge_ahead(zone, th_sigma, n_theta)
+    for step in range(th_steps):
+        edge = _theta_edge_ahead(zone, th_sigma, n_theta, theta_full)
         t_prev = _clamp(
-            _plane_time(ox, oz, dx, dz, theta_sin[edge], theta_cos[edge]), t_prev, np.inf, slack
+            _plane_time(t_closest, cx, cz, dx, dz, theta_sin[edge], theta_cos[edge]),
+            t_prev, np.inf, slack, step == th_steps - 1,
         )
         if t_prev > t_final:
             break
@@ -271,20 +315,24 @@ def theta_times(ox, oz, dx, dz, jt, jt_limit, th_sigma, th_steps, t_axis, theta_
 
 
 @jit(inline="always")
-def phi_times(oy, dy, ab, a2, b2, kp, kp_limit, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump,
-              phi_tan2, phi_nappe, t_final, slack, times, zones):
+def phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps, ph2_start,
+              ph2_steps, ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones):
     """Phase 2 for phi: as ``theta_times``, into row ``PHI``; returns their number."""
     inf = np.inf
+    b2 = dx * dx + dz * dz
+    cab = cx * dx + cz * dz
+    ca2 = cx * cx + cz * cz
     n_p = 0
     zone = kp
     t_prev = 0.0
     done = False  # a crossing past t_final ends the list
     sigma = 1 if ph2_start > kp else -1
-    for _ in range(ph1_steps):
+    for step in range(ph1_steps):
         edge = zone + 1 if sigma > 0 else zone
         t_prev = _clamp(
-            _cone_time(oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], True, 0.0, slack),
-            t_prev, t_turn, slack,
+            _cone_time(t_closest, cy, dy, cab, ca2, b2, phi_tan2[edge], phi_nappe[edge], True,
+                       0.0, slack),
+            t_prev, t_turn, slack, step == ph1_steps - 1,
         )
         if t_prev > t_final:
             done = True
@@ -294,7 +342,7 @@ def phi_times(oy, dy, ab, a2, b2, kp, kp_limit, t_turn, ph1_steps, ph2_start, ph
         zones[PHI, n_p + 1] = zone
         n_p += 1
     if ph_jump == 1:
-        t_prev = _clamp(t_turn, t_prev, inf, slack)
+        t_prev = _clamp(t_turn, t_prev, inf, slack, False)
         if t_prev > t_final:
             done = True
         else:
@@ -305,13 +353,12 @@ def phi_times(oy, dy, ab, a2, b2, kp, kp_limit, t_turn, ph1_steps, ph2_start, ph
     if not done:
         sigma = 1 if kp_limit > zone else -1
         branch_start = t_turn if t_turn < inf else 0.0
-        for _ in range(ph2_steps):
+        for step in range(ph2_steps):
             edge = zone + 1 if sigma > 0 else zone
             t_prev = _clamp(
-                _cone_time(
-                    oy, dy, ab, a2, b2, phi_tan2[edge], phi_nappe[edge], False, branch_start, slack
-                ),
-                t_prev, inf, slack,
+                _cone_time(t_closest, cy, dy, cab, ca2, b2, phi_tan2[edge], phi_nappe[edge],
+                           False, branch_start, slack),
+                t_prev, inf, slack, step == ph2_steps - 1,
             )
             if t_prev > t_final:
                 break
@@ -359,9 +406,9 @@ def trace_ray(
     reuse = mode == TRACE
     # Rounding of a crossing time is ~1e-14 of the scene's size; a crossing found
     # further in the past than this is one at infinity (see _clamp).
-    slack = 1e-9 * (rho_edges[n_rho] + np.sqrt(ox * ox + oy * oy + oz * oz))
+    slack = 1e-9 * (rho_edges[n_rho] + math.sqrt(ox * ox + oy * oy + oz * oz))
 
-    ab, a2, b2, t_closest, h2 = line_geometry(ox, oy, oz, dx, dy, dz)
+    t_closest, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
 
     # ---- phase 1, rho: falls until the closest approach t_c, then rises (Eq. 9a).
     if reuse:
@@ -371,7 +418,7 @@ def trace_ray(
         ir = rho_zone(ox, oy, oz, rho_edges, rho_kind)
         ir_turn = ir
         if t_closest > 0.0:
-            ir_turn = min(locate(np.sqrt(h2), rho_edges, rho_kind), ir)
+            ir_turn = min(locate(math.sqrt(h2), rho_edges, rho_kind), ir)
         lookups[0] = ir
         lookups[1] = ir_turn
     rho_steps_in = ir - ir_turn
@@ -389,7 +436,7 @@ def trace_ray(
         lookups[2] = jt
         lookups[3] = jt_limit
     jt, th_sigma, th_steps, t_axis = theta_plan(
-        ox, oz, dx, dz, ab, b2, jt, jt_limit, theta_edges, theta_full, lookups, reuse
+        ox, oz, cx, cz, dx, dz, t_closest, jt, jt_limit, theta_edges, theta_full, lookups, reuse
     )
     if reuse:
         kp_limit = lookups[5]
@@ -400,7 +447,7 @@ def trace_ray(
         lookups[5] = kp_limit
         lookups[6] = kp
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
-        ox, oy, oz, dx, dy, dz, ab, a2, b2, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
+        ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
         lookups, reuse,
     )
 
@@ -414,13 +461,15 @@ def trace_ray(
     zone = ir
     t_prev = 0.0
     for _ in range(rho_steps_in):
-        t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone], False), t_prev, inf, slack)
+        t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone], False), t_prev, inf, slack,
+                        False)
         zone -= 1
         times[RHO, n_r + 1] = t_prev
         zones[RHO, n_r + 1] = zone
         n_r += 1
     for _ in range(rho_steps_out):
-        t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone + 1], True), t_prev, inf, slack)
+        t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone + 1], True), t_prev, inf, slack,
+                        False)
         zone += 1
         times[RHO, n_r + 1] = t_prev
         zones[RHO, n_r + 1] = zone
@@ -436,10 +485,10 @@ def trace_ray(
     # The last rho crossing leaves the region for good: nothing after it matters.
     t_final = times[RHO, n_r]
 
-    n_t = theta_times(ox, oz, dx, dz, jt, jt_limit, th_sigma, th_steps, t_axis, theta_sin,
-                      theta_cos, theta_full, t_final, slack, times, zones)
-    n_p = phi_times(oy, dy, ab, a2, b2, kp, kp_limit, t_turn, ph1_steps, ph2_start, ph2_steps,
-                    ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones)
+    n_t = theta_times(cx, cz, dx, dz, t_closest, jt, jt_limit, th_sigma, th_steps, t_axis,
+                      theta_sin, theta_cos, theta_full, t_final, slack, times, zones)
+    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps, ph2_start,
+                    ph2_steps, ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones)
 
     # ---- phase 3: merge the three sorted lists; emit while inside.
     # Crossings that coincide (a corner where a sphere, a half-plane and a cone

@@ -80,9 +80,14 @@ def elevation(x, y, z):
 def wrap_theta(theta, theta_min):
     """Wrap an azimuth into [theta_min, theta_min + 2*pi).
 
-    ``floor`` rather than ``%``: the float modulo is a slow libm call and this
-    runs for every ray.
+    An azimuth already in range is returned as it is: shifting it by
+    ``theta_min`` and back would round a tiny angle (a point a hair off the
+    plane x = 0) onto the edge at 0 when theta_min = -pi, and put it in the
+    wrong zone. ``floor`` rather than ``%``: the float modulo is a slow libm
+    call and this runs for every ray.
     """
+    if theta_min <= theta < theta_min + TWO_PI:
+        return theta
     offset = theta - theta_min
     offset -= TWO_PI * math.floor(offset / TWO_PI)
     if offset >= TWO_PI or offset < 0.0:

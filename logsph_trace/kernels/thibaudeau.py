@@ -8,17 +8,21 @@ full Cartesian-to-cell lookup per interval. It is exact, like the oracle, and
 serves as the sort-based baseline of the timing study (Fig. 4).
 """
 
+import math
+
 import numpy as np
 from numba import prange
 
 from .._jit import jit, jit_serial_and_parallel
+from .exact import line_geometry
 from .locate import BLOCK, phi_zone, rho_zone, theta_zone
 
 
 @jit
 def scratch_length(n_rho, n_theta, n_phi):
-    """Most break points one ray can have: every root of every boundary, plus 0 and the end."""
-    return 2 * (n_rho + 1) + (n_theta + 1) + 2 * (n_phi + 1) + 3
+    """Most break points one ray can have: every root of every boundary, plus 0, the
+    closest approach and the end."""
+    return 2 * (n_rho + 1) + (n_theta + 1) + 2 * (n_phi + 1) + 4
 
 
 @jit
@@ -29,48 +33,57 @@ def thibaudeau_ray(ox, oy, oz, dx, dy, dz,
     n_rho = rho_edges.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
-    b = ox * dx + oy * dy + oz * dz
-    c0 = ox * ox + oy * oy + oz * oz
-    disc = b * b - (c0 - rho_edges[n_rho] ** 2)
-    if disc < 0.0 or -b + np.sqrt(disc) <= 0.0:
+    # Every equation is solved about the line's closest point c to the centre
+    # (u = t - t_c), which keeps the roots accurate for lines through or near
+    # the centre (see ``exact.line_geometry``).
+    t_c, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
+    outer = rho_edges[n_rho] ** 2 - h2
+    if outer < 0.0 or t_c + math.sqrt(outer) <= 0.0:
         return 0  # never inside the outer sphere
-    t_final = -b + np.sqrt(disc)
+    t_final = t_c + math.sqrt(outer)
     n = 0
     breaks[n] = 0.0
     n += 1
+    if 0.0 < t_c < t_final:  # phi and theta may jump at the centre
+        breaks[n] = t_c
+        n += 1
     for radius in rho_edges:  # Eq. 9a, both roots
-        disc = b * b - (c0 - radius * radius)
+        disc = radius * radius - h2
         if disc >= 0.0:
-            root = np.sqrt(disc)
-            for t in (-b - root, -b + root):
+            root = math.sqrt(disc)
+            for t in (t_c - root, t_c + root):
                 if 0.0 < t < t_final:
                     breaks[n] = t
                     n += 1
     for angle in theta_edges:  # Eq. 9c: the whole plane; extra breaks are harmless
-        denom = dx * np.cos(angle) - dz * np.sin(angle)
+        denom = dx * math.cos(angle) - dz * math.sin(angle)
         if denom != 0.0:
-            t = -(ox * np.cos(angle) - oz * np.sin(angle)) / denom
+            t = t_c - (cx * math.cos(angle) - cz * math.sin(angle)) / denom
             if 0.0 < t < t_final:
                 breaks[n] = t
                 n += 1
+    b2 = dx * dx + dz * dz
+    cab = cx * dx + cz * dz
+    ca2 = cx * cx + cz * cz
     for angle in phi_edges:  # Eq. 9b, both nappes
         if abs(angle) >= 0.5 * np.pi:
             continue
         if angle == 0.0:  # the plane y = 0; its quadratic's discriminant rounds below 0
-            t = -oy / dy
+            t = t_c - cy / dy
             if 0.0 < t < t_final:
                 breaks[n] = t
                 n += 1
             continue
-        tan2 = np.tan(angle) ** 2
-        a = dy * dy - tan2 * (dx * dx + dz * dz)
-        half_b = oy * dy - tan2 * (ox * dx + oz * dz)
-        c = oy * oy - tan2 * (ox * ox + oz * oz)
+        tan2 = math.tan(angle) ** 2
+        a = dy * dy - tan2 * b2
+        half_b = cy * dy - tan2 * cab
+        c = cy * cy - tan2 * ca2
         disc = half_b * half_b - a * c
         if disc < 0.0:
             continue
-        q = -(half_b + np.sqrt(disc)) if half_b >= 0.0 else -(half_b - np.sqrt(disc))
-        for t in (q / a, c / q):
+        q = -(half_b + math.sqrt(disc)) if half_b >= 0.0 else -(half_b - math.sqrt(disc))
+        for u in (q / a, c / q):
+            t = t_c + u
             if 0.0 < t < t_final:
                 breaks[n] = t
                 n += 1
@@ -78,7 +91,7 @@ def thibaudeau_ray(ox, oy, oz, dx, dy, dz,
     n += 1
     ordered = breaks[:n]
     ordered.sort()  # in place: no allocation per ray
-    snap = 1e-12 * (rho_edges[n_rho] + np.sqrt(c0))
+    snap = 1e-12 * (rho_edges[n_rho] + math.sqrt(ox * ox + oy * oy + oz * oz))
     count = 0
     last_i = -1
     last_j = -1
