@@ -16,7 +16,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from .api import _check_grid, _vectors, trace_many
+from .api import _check_grid, _check_origin_size, _row_norms, _vectors, trace_many
 from .cone import _aggregate, _sample
 from .grid import Grid
 from .kernels import occupancy as _kernels
@@ -106,15 +106,16 @@ class OccupancyGrid:
         self
         """
         points = _vectors("points", points)
-        origin = _vectors("sensor_origin", sensor_origin)[0]
+        origin = _check_origin_size("sensor_origin", _vectors("sensor_origin", sensor_origin))[0]
         offsets = points - origin if np.any(origin) else points
-        distances = np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
+        distances = _row_norms(offsets)
         if not np.all(distances > 0.0):  # a point at the sensor is no ray
             keep = distances > 0.0
             offsets, distances = offsets[keep], distances[keep]
         radial = not np.any(origin)  # the sensor at the grid's centre
-        if not radial:  # unit directions from the full lengths, before max_range cuts them
-            directions = np.ascontiguousarray(offsets / distances[:, None])
+        lengths = distances  # unit directions come from the full lengths, before max_range
+        if not radial:
+            directions = np.ascontiguousarray(offsets / lengths[:, None])
         is_hit = np.ones(distances.shape[0], dtype=np.bool_)
         if max_range is not None:
             max_range = float(max_range)
@@ -131,7 +132,7 @@ class OccupancyGrid:
             # The egocentric case: every ray is radial.
             free_extent = np.zeros((threads, grid.n_theta * grid.n_phi), dtype=np.int64)
             hits = np.empty(distances.shape[0], dtype=np.int64)
-            _kernels.mark_radial(np.ascontiguousarray(offsets), distances, is_hit,
+            _kernels.mark_radial(np.ascontiguousarray(offsets), lengths, distances, is_hit,
                                  grid.rho_edges, grid.rho_kind, grid.theta_edges, grid.theta_kind,
                                  grid.phi_edges, grid.phi_kind, free_extent, hits)
             _kernels.apply_radial(self.log_odds.reshape(-1), free_extent, hits,
@@ -266,7 +267,7 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
     min_distance = float(min_distance)
     if not (np.isfinite(min_distance) and min_distance >= 0.0):
         raise ValueError(f"min_distance must be >= 0, got {min_distance!r}")
-    origin = _vectors("origin", origin)[0]
+    origin = _check_origin_size("origin", _vectors("origin", origin))[0]
     directions, ray_weights = _sample(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
     traces = trace_many(grid, np.broadcast_to(origin, directions.shape), directions)

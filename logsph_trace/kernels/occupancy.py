@@ -4,6 +4,8 @@ Parallel work never shares a write: each thread marks its own row of the
 free/hit flag arrays, and a second ``prange`` over cells combines the rows.
 """
 
+import math
+
 import numba
 import numpy as np
 from numba import prange
@@ -27,6 +29,23 @@ FREE = 1
 HIT = 2
 
 
+@jit(inline="always")
+def _in_shell(r2, i, rho_sq):
+    """Whether rho^2 = ``r2`` lies in zone ``i`` (-1: the gap; n_rho: beyond)."""
+    above = i < 0 or r2 >= rho_sq[i]
+    below = i >= rho_sq.shape[0] - 1 or r2 < rho_sq[i + 1]
+    return above and below
+
+
+@jit(inline="always")
+def _left_within_snap(t_now, t_next, snap, t_closest, h2, i, rho_sq):
+    """Whether the cell in shell ``i`` entered at ``t_now`` is left by ``t_now + snap``
+    (a sliver the exact trace absorbs): the stretch ends or the shell changes."""
+    if t_next - t_now <= snap:
+        return True
+    return not _in_shell((t_now + snap - t_closest) ** 2 + h2, i, rho_sq)
+
+
 @jit
 def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_edges, theta_sin,
               theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind,
@@ -40,20 +59,30 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
     ray stays in one (theta, phi) column and rho is monotone on each side of
     the closest approach, so the shells it passes are found by comparing
     rho^2 = (t - t_c)^2 + h^2 at the crossing with the squared edges: no
-    sphere crossing times and no merge, as only the cells matter here. A cell
-    the ray only touches at a corner (a sliver the exact trace absorbs) may
-    be flagged. ``ir``, ``jt``, ``kp``: the origin's zones, shared by the scan.
+    sphere crossing times and no merge, as only the cells matter here.
+
+    The cells are those of the exact trace: a cell is flagged when the ray
+    leaves it, and only if it stayed longer than the trace's ``snap``. A cell
+    entered or left at an angular crossing is tested by probing rho^2 ``snap``
+    after (or before) the crossing; one entered and left through spheres is a
+    whole shell, a sliver only when it is the dip at the closest approach
+    (its chord is known). A ray through or near the y axis or the centre
+    sweeps many columns within ~h there: those slivers are not flagged.
+    ``ir``, ``jt``, ``kp``: the origin's zones, shared by the scan.
     """
     n_rho = rho_sq.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
+    # The exact kernel's tolerances, from the sensor's own position.
+    slack = 1e-9 * (math.sqrt(rho_sq[n_rho]) + math.sqrt(ox * ox + oy * oy + oz * oz))
+    snap = 1e-3 * slack
     i = ir
     if ir == -1:
         # In the egocentric gap: start where the ray leaves it, on the inner
         # sphere. Near the centre a ray sweeps through many angular zones (from
         # the origin's direction to its own) that hold no cell.
-        _, _, _, t_closest, h2 = line_geometry(ox, oy, oz, dx, dy, dz)
-        t_in = t_closest + np.sqrt(max(rho_sq[0] - h2, 0.0))
+        t_closest, h2, _, _, _ = line_geometry(ox, oy, oz, dx, dy, dz)
+        t_in = t_closest + math.sqrt(max(rho_sq[0] - h2, 0.0))
         if t_in >= t_max:
             return -1  # ends in the gap
         ox += t_in * dx
@@ -63,11 +92,10 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
         i = 0
         jt = theta_zone(ox, oz, theta_edges, theta_kind)
         kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
-    slack = 1e-9 * (np.sqrt(rho_sq[n_rho]) + np.sqrt(ox * ox + oy * oy + oz * oz))
-    ab, a2, b2, t_closest, h2 = line_geometry(ox, oy, oz, dx, dy, dz)
+    t_closest, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
     if h2 >= rho_sq[n_rho]:
         return -1  # the line misses the outer sphere (or only touches it)
-    t_leave = t_closest + np.sqrt(rho_sq[n_rho] - h2)
+    t_leave = t_closest + math.sqrt(rho_sq[n_rho] - h2)
     if t_leave <= 0.0:
         return -1  # beyond rho_max and moving away
     t_final = min(t_max, t_leave)
@@ -75,16 +103,16 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
     jt_limit = theta_zone(dx, dz, theta_edges, theta_kind)
     kp_limit = phi_zone(dx, dy, dz, phi_edges, phi_kind)
     jt, th_sigma, th_steps, t_axis = theta_plan(
-        ox, oz, dx, dz, ab, b2, jt, jt_limit, theta_edges, theta_full, lookups, False
+        ox, oz, cx, cz, dx, dz, t_closest, jt, jt_limit, theta_edges, theta_full, lookups, False
     )
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
-        ox, oy, oz, dx, dy, dz, ab, a2, b2, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
+        ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
         lookups, False,
     )
-    n_t = theta_times(ox, oz, dx, dz, jt, jt_limit, th_sigma, th_steps, t_axis, theta_sin,
-                      theta_cos, theta_full, t_final, slack, times, zones)
-    n_p = phi_times(oy, dy, ab, a2, b2, kp, kp_limit, t_turn, ph1_steps, ph2_start, ph2_steps,
-                    ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones)
+    n_t = theta_times(cx, cz, dx, dz, t_closest, jt, jt_limit, th_sigma, th_steps, t_axis,
+                      theta_sin, theta_cos, theta_full, t_final, slack, times, zones)
+    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps, ph2_start,
+                    ph2_steps, ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones)
     zones[THETA, 0] = jt
     zones[PHI, 0] = kp
     times[THETA, n_t + 1] = np.inf
@@ -92,11 +120,12 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
 
     column = jt * n_phi + kp
     column_in = jt < n_theta and 0 <= kp < n_phi
-    if column_in and 0 <= i < n_rho:
-        free[column * n_rho + i] = 1
     falling = t_closest > 0.0
     done_t = 0
     done_p = 0
+    t_now = 0.0  # when the current column was entered
+    at_crossing = True  # the current cell was entered at t_now, not through a sphere
+    inward = False  # ... or through a sphere inwards (then leaving outwards is the dip)
     # One pass per angular crossing, plus the last stretch to t_final. Each
     # shell walk moves i one way within [-1, n_rho], so n_rho + 1 steps bound it.
     for _ in range(n_t + n_p + 1):
@@ -108,9 +137,14 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
             r2 = h2 if t_next >= t_closest else (t_next - t_closest) ** 2 + h2
             for _ in range(n_rho + 1):
                 if i >= 0 and r2 < rho_sq[i]:
-                    i -= 1
-                    if column_in and i >= 0:
+                    # Left through the sphere below: a whole shell, unless it
+                    # was entered at the crossing and left within snap.
+                    if column_in and i < n_rho and not (at_crossing and _left_within_snap(
+                            t_now, t_next, snap, t_closest, h2, i, rho_sq)):
                         free[column * n_rho + i] = 1
+                    i -= 1
+                    at_crossing = False
+                    inward = True
                 else:
                     break
             falling = t_next < t_closest
@@ -118,25 +152,43 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
             r2 = (t_next - t_closest) ** 2 + h2
             for _ in range(n_rho + 1):
                 if i < n_rho and r2 >= rho_sq[i + 1]:
+                    if column_in and i >= 0:
+                        if at_crossing:
+                            sliver = _left_within_snap(t_now, t_next, snap, t_closest, h2, i,
+                                                       rho_sq)
+                        else:  # a whole shell, or the dip: its chord
+                            sliver = inward and 4.0 * (rho_sq[i + 1] - h2) <= snap * snap
+                        if not sliver:
+                            free[column * n_rho + i] = 1
                     i += 1
-                    if column_in and i < n_rho:
-                        free[column * n_rho + i] = 1
+                    at_crossing = False
+                    inward = False
                 else:
                     break
             if i == n_rho:
                 return -1  # past rho_max and moving away for good
+        # The cell is left at t_next: by an angular crossing or the end of the ray.
+        cell_in = column_in and 0 <= i < n_rho
+        if cell_in:
+            if at_crossing:
+                stays = t_next - t_now > snap
+            else:
+                stays = _in_shell((t_next - snap - t_closest) ** 2 + h2, i, rho_sq)
+            if stays:
+                free[column * n_rho + i] = 1
         if t_next >= t_final:
-            break
+            if is_hit and t_max <= t_leave and cell_in and stays:
+                return column * n_rho + i
+            return -1
         if t_theta <= t_phi:
             done_t += 1
         else:
             done_p += 1
         column = zones[THETA, done_t] * n_phi + zones[PHI, done_p]
         column_in = zones[THETA, done_t] < n_theta and 0 <= zones[PHI, done_p] < n_phi
-        if column_in and 0 <= i < n_rho:
-            free[column * n_rho + i] = 1
-    if is_hit and t_max <= t_leave and column_in and 0 <= i < n_rho:
-        return column * n_rho + i
+        t_now = t_next
+        at_crossing = True
+        inward = False
     return -1
 
 
@@ -256,35 +308,45 @@ def first_occupied(offsets, cells, t_exit, log_odds, n_theta, n_phi, ray_weights
     return out
 
 
-def _mark_radial(points, distances, is_hit, rho_edges, rho_kind, theta_edges, theta_kind,
+def _mark_radial(points, lengths, distances, is_hit, rho_edges, rho_kind, theta_edges, theta_kind,
                  phi_edges, phi_kind, free_extent, hits):
     """The sensor at the grid's origin: every ray is radial, so its cells are one
     (theta, phi) column, free up to the shell holding its end point.
 
-    ``free_extent`` (threads, n_theta * n_phi) int64 records, per thread and
-    column, how many shells from the centre are free; ``hits[row]`` gets the
-    map index of ray ``row``'s hit cell, or -1. Three lookups per ray instead
-    of a traversal.
+    The column is that of the unit direction ``points / lengths`` (the full
+    lengths), exactly as ``trace_many`` would trace it: a point on a cell's
+    edge may round to either side, the direction decides. An end cell the ray
+    enters less than the exact trace's ``snap`` before ``distances`` is a
+    sliver, neither free nor hit. ``free_extent`` (threads, n_theta * n_phi)
+    int64 records, per thread and column, how many shells from the centre are
+    free; ``hits[row]`` gets the map index of ray ``row``'s hit cell, or -1.
+    Three lookups per ray instead of a traversal.
     """
     n_rays = points.shape[0]
     n_rho = rho_edges.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
+    snap = 1e-12 * rho_edges[n_rho]
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         thread = numba.get_thread_id()
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             hits[row] = -1
-            x = points[row, 0]
-            y = points[row, 1]
-            z = points[row, 2]
+            x = points[row, 0] / lengths[row]
+            y = points[row, 1] / lengths[row]
+            z = points[row, 2] / lengths[row]
             j = theta_zone(x, z, theta_edges, theta_kind)
             k = phi_zone(x, y, z, phi_edges, phi_kind)
             if j >= n_theta or k < 0 or k >= n_phi:
                 continue  # outside the angular range: the ray never enters the region
             shell = locate(distances[row], rho_edges, rho_kind)  # -1: gap, n_rho: beyond
+            if 0 <= shell < n_rho and distances[row] - rho_edges[shell] <= snap:
+                shell -= 1  # the end cell is a sliver: the ray stops on its edge
+                hit = False
+                free = shell + 1
+            else:
+                hit = is_hit[row] and 0 <= shell < n_rho
+                free = min(shell, n_rho) if hit else min(shell + 1, n_rho)
             column = j * n_phi + k
-            hit = is_hit[row] and 0 <= shell < n_rho
-            free = min(shell, n_rho) if hit else min(shell + 1, n_rho)
             if free > free_extent[thread, column]:
                 free_extent[thread, column] = free
             if hit:
