@@ -136,12 +136,44 @@ def _vectors(name, value, rows=None):
     return np.ascontiguousarray(array)
 
 
-def _unit_directions(directions):
-    norms = np.sqrt(np.einsum("ij,ij->i", directions, directions))
+# Rows whose largest component lies outside this range are scaled by it before
+# their squares are summed: a component of 1e154 or more would overflow, and
+# one of 1e-154 or less underflow (a direction of 1e200 became (0, 0, 0)).
+_SAFE_LOW, _SAFE_HIGH = 1e-150, 1e150
+
+
+def _scaled_rows(vectors):
+    """(rows / scale, scale): each row divided by its largest component when that lies
+    outside [1e-150, 1e150], else left as it is (scale 1, bit-identical)."""
+    big = np.max(np.abs(vectors), axis=1)
+    scale = np.where((big > _SAFE_HIGH) | ((big < _SAFE_LOW) & (big > 0.0)), big, 1.0)
+    return vectors / scale[:, None], scale
+
+
+def _row_norms(vectors):
+    """Euclidean length of each row of an (m, 3) array, without overflow or underflow."""
+    scaled, scale = _scaled_rows(vectors)
+    return scale * np.sqrt(np.einsum("ij,ij->i", scaled, scaled))
+
+
+def _unit_directions(directions, name="directions"):
+    """Rows scaled to unit length without overflow or underflow; zero rows are an error."""
+    scaled, _ = _scaled_rows(directions)
+    norms = np.sqrt(np.einsum("ij,ij->i", scaled, scaled))
     if np.any(norms == 0.0):
         row = int(np.argmin(norms))
-        raise ValueError(f"directions must be non-zero; row {row} is {directions[row].tolist()}")
-    return np.ascontiguousarray(directions / norms[:, None])
+        raise ValueError(f"{name} must be non-zero; row {row} is {directions[row].tolist()}")
+    return np.ascontiguousarray(scaled / norms[:, None])
+
+
+def _check_origin_size(name, origins):
+    """The kernels square an origin's length: beyond ~1.3e154 it would overflow."""
+    squares = np.einsum("ij,ij->i", origins, origins)
+    if not np.all(np.isfinite(squares)):
+        row = int(np.argmin(np.isfinite(squares)))
+        raise ValueError(f"{name} must be shorter than about 1e154 (its square must be "
+                         f"finite); row {row} is {origins[row].tolist()}")
+    return origins
 
 
 def _rays(origins, directions):
@@ -153,7 +185,7 @@ def _rays(origins, directions):
                 f"got shape {np.shape(origins)}"
             )
         origins, directions = array[:, :3], array[:, 3:]
-    origins = _vectors("origins", origins)
+    origins = _check_origin_size("origins", _vectors("origins", origins))
     directions = _vectors("directions", directions, rows=origins.shape[0])
     return origins, _unit_directions(directions)
 

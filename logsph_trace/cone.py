@@ -14,8 +14,10 @@ import numpy as np
 from .api import (
     Traces,
     _check_grid,
+    _check_origin_size,
     _run_exact,
     _segment_arrays,
+    _unit_directions,
     _vectors,
     trace_regions,
 )
@@ -87,11 +89,7 @@ class ConeTrace:
 
 
 def _unit(name, vector):
-    array = _vectors(name, vector)[0]
-    norm = np.linalg.norm(array)
-    if norm == 0.0:
-        raise ValueError(f"{name} must be non-zero, got {array.tolist()}")
-    return array / norm
+    return _unit_directions(_vectors(name, vector), name)[0]
 
 
 def _check_half_angle(half_angle):
@@ -180,7 +178,7 @@ def default_ray_count(grid, origin, half_angle):
     half_angle = _check_half_angle(half_angle)
     if half_angle == 0.0:
         return 1
-    origin = _vectors("origin", origin)[0]
+    origin = _check_origin_size("origin", _vectors("origin", origin))[0]
     cell_angle = min(np.min(np.diff(grid.theta_edges)), np.min(np.diff(grid.phi_edges)))
     cell_width = grid.rho_max * cell_angle
     reach = np.linalg.norm(origin) + grid.rho_max
@@ -313,7 +311,7 @@ def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibona
         ``pattern``, ``weighting`` or ``sigma``; ``grid`` not a Grid.
     """
     _check_grid(grid)
-    origin = _vectors("origin", origin)[0]
+    origin = _check_origin_size("origin", _vectors("origin", origin))[0]
     directions, ray_weights = _sample(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
     n_rays = directions.shape[0]

@@ -9,6 +9,7 @@ from .kernels import locate as _locate
 SPACINGS = ("log", "paper", "uniform")
 _SPACING_KIND = {"log": _locate.LOG, "paper": _locate.PAPER, "uniform": _locate.UNIFORM}
 _FULL_TURN_TOL = 1e-12
+_SQRT_MAX = math.sqrt(np.finfo(np.float64).max)  # ~1.34e154: larger numbers square to inf
 
 
 def _as_count(name, value):
@@ -58,6 +59,15 @@ def _check_edges(name, edges):
             f">= edges[{bad + 1}]={float(array[bad + 1])!r}"
         )
     return array
+
+
+def _check_squares(name, rho_edges):
+    """The kernels compare squared distances: rho_max^2 must be a finite number."""
+    if not rho_edges[-1] <= _SQRT_MAX:
+        raise ValueError(
+            f"{name} must be below about 1e154 so that its square is finite, "
+            f"got {float(rho_edges[-1])!r}"
+        )
 
 
 def _check_theta_width(low, high, name):
@@ -119,6 +129,7 @@ def rho_edges_for(rho_min, rho_max, n_rho, spacing="log"):
         edges = np.linspace(rho_min, rho_max, n_rho + 1)
     edges[0] = rho_min
     edges[-1] = rho_max
+    _check_squares("rho_max", edges)
     if not np.all(np.diff(edges) > 0):
         raise ValueError(f"n_rho={n_rho} is too fine for rho in ({rho_min!r}, {rho_max!r})")
     return edges
@@ -189,6 +200,7 @@ class Grid:
         phi = _check_edges("phi_edges", phi_edges)
         if rho[0] < 0:
             raise ValueError(f"rho_edges[0] must be >= 0, got {rho[0]!r}")
+        _check_squares("rho_edges", rho)
         if _check_theta_width(theta[0], theta[-1], "theta_edges"):
             theta[-1] = theta[0] + 2 * np.pi
         _check_phi(phi[0], phi[-1], "phi_edges")
