@@ -1,0 +1,119 @@
+"""Rays aimed at the singular sets of a log-spherical grid, from random (not round) eyes.
+
+Along a line, rho, theta and phi are smooth except on a few sets; a ray that
+passes through or near one of them is where rounding decides the answer:
+
+* ``centre``: the line meets (or nearly meets) the grid's centre; phi jumps to
+  the opposite elevation and theta by half a turn there.
+* ``y_axis``: the line meets the y axis; theta jumps by half a turn.
+* ``sphere_tangent``: the line grazes a radial sphere.
+* ``phi_turn``: phi turns back exactly on an elevation cone (the line is
+  tangent to the cone, away from its generatrix).
+* ``corner``: the line passes through a point where a sphere, a half-plane
+  and a cone meet.
+
+Each ray is built exactly on its set and then moved off it by ``offset``
+times the scene's size, perpendicular to the line (for tangents, along the
+surface's normal), so both the singular case and its near misses are drawn.
+The eye is drawn at random in a box 1.3x the region, so no input is round.
+"""
+
+import numpy as np
+
+CLASSES = ("centre", "y_axis", "sphere_tangent", "phi_turn", "corner")
+OFFSETS = (0.0, 1e-15, 1e-12, 1e-9, 1e-6, 1e-3)
+
+
+def _unit(vector):
+    return vector / np.linalg.norm(vector)
+
+
+def _perpendicular(rng, direction):
+    """A random unit vector perpendicular to ``direction``."""
+    other = np.cross(direction, rng.normal(size=3))
+    return _unit(other)
+
+
+def _random_eye(rng, grid):
+    reach = 1.3 * grid.rho_max
+    return rng.uniform(-reach, reach, 3)
+
+
+def _interior(rng, edges):
+    """An edge of the grid chosen at random, interior ones preferred."""
+    if len(edges) > 2 and rng.random() < 0.8:
+        return edges[rng.integers(1, len(edges) - 1)]
+    return edges[rng.integers(0, len(edges))]
+
+
+def _on_sphere_of_edges(rng, grid):
+    """A point on a cell corner: rho edge, theta edge and phi edge all at once."""
+    rho = _interior(rng, grid.rho_edges)
+    if rho == 0.0:
+        rho = grid.rho_edges[1]
+    theta = _interior(rng, grid.theta_edges)
+    phi = _interior(rng, grid.phi_edges)
+    return rho * np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+
+
+def aim(rng, grid, kind, offset, eye):
+    """A point of set ``kind`` (``centre``, ``y_axis`` or ``corner``) seen from ``eye``,
+    moved ``offset`` x rho_max off it, perpendicular to the line of sight."""
+    if kind == "centre":
+        target = np.zeros(3)
+    elif kind == "y_axis":
+        target = np.array([0.0, rng.uniform(-grid.rho_max, grid.rho_max), 0.0])
+    elif kind == "corner":
+        target = _on_sphere_of_edges(rng, grid)
+    else:
+        raise ValueError(f"{kind!r} is not a point set")
+    sight = target - eye
+    if not np.any(sight):
+        sight = rng.normal(size=3)
+    return target + offset * grid.rho_max * _perpendicular(rng, sight)
+
+
+def singular_ray(rng, grid, kind, offset):
+    """One ray (origin, direction) of class ``kind``, moved ``offset`` x rho_max off its set."""
+    scale = grid.rho_max
+    shift = offset * scale
+    if kind in ("centre", "y_axis", "corner"):
+        eye = _random_eye(rng, grid)
+        return eye, aim(rng, grid, kind, offset, eye) - eye
+    if kind == "sphere_tangent":
+        radius = _interior(rng, grid.rho_edges)
+        if radius == 0.0:
+            radius = grid.rho_edges[1]
+        normal = _unit(rng.normal(size=3))
+        direction = _perpendicular(rng, normal)
+        touch = (radius + shift * rng.choice([-1.0, 1.0])) * normal
+        return touch - rng.uniform(0.2, 1.5) * scale * direction, direction
+    if kind == "phi_turn":
+        phi = _interior(rng, grid.phi_edges)
+        phi = float(np.clip(phi, -1.5, 1.5))  # the cone, not the y axis itself
+        theta = rng.uniform(-np.pi, np.pi)
+        if grid.rho_min > 0:
+            rho = rng.uniform(grid.rho_min, grid.rho_max)
+        else:
+            rho = rng.uniform(0.1, 1.0) * grid.rho_max
+        generatrix = np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+        across = np.array([np.cos(theta), 0.0, -np.sin(theta)])  # horizontal tangent
+        normal = np.cross(generatrix, across)
+        # Tangent to the cone at the touch point, within 1 rad of the horizontal.
+        beta = rng.uniform(-1.0, 1.0)
+        direction = np.cos(beta) * across + np.sin(beta) * generatrix
+        touch = rho * generatrix + shift * rng.choice([-1.0, 1.0]) * normal
+        return touch - rng.uniform(0.2, 1.5) * scale * direction, direction
+    raise ValueError(f"unknown singular class {kind!r}")
+
+
+def singular_rays(rng, grid, kind, n_rays, offsets=OFFSETS):
+    """``n_rays`` rays of class ``kind`` per offset: (origins, directions, offsets) arrays."""
+    origins, directions, used = [], [], []
+    for offset in offsets:
+        for _ in range(n_rays):
+            origin, direction = singular_ray(rng, grid, kind, offset)
+            origins.append(origin)
+            directions.append(direction)
+            used.append(offset)
+    return np.array(origins), np.array(directions), np.array(used)
