@@ -136,34 +136,36 @@ def _vectors(name, value, rows=None):
     return np.ascontiguousarray(array)
 
 
-# Rows whose largest component lies outside this range are scaled by it before
-# their squares are summed: a component of 1e154 or more would overflow, and
-# one of 1e-154 or less underflow (a direction of 1e200 became (0, 0, 0)).
-_SAFE_LOW, _SAFE_HIGH = 1e-150, 1e150
-
-
-def _scaled_rows(vectors):
-    """(rows / scale, scale): each row divided by its largest component when that lies
-    outside [1e-150, 1e150], else left as it is (scale 1, bit-identical)."""
-    big = np.max(np.abs(vectors), axis=1)
-    scale = np.where((big > _SAFE_HIGH) | ((big < _SAFE_LOW) & (big > 0.0)), big, 1.0)
-    return vectors / scale[:, None], scale
+# A row's squared length must lie in this range to be summed as it is: beyond
+# it a component of ~1e154 overflows (a direction of 1e200 became (0, 0, 0))
+# or one of ~1e-154 underflows and loses its digits. Such rows, and only they,
+# are scaled by their largest component first.
+_SQUARES_LOW, _SQUARES_HIGH = 1e-300, 1e300
 
 
 def _row_norms(vectors):
-    """Euclidean length of each row of an (m, 3) array, without overflow or underflow."""
-    scaled, scale = _scaled_rows(vectors)
-    return scale * np.sqrt(np.einsum("ij,ij->i", scaled, scaled))
+    """Euclidean length of each row of an (m, 3) array, without overflow or underflow.
+
+    Ordinary rows cost one pass and are bit-identical to ``sqrt(x^2 + y^2 + z^2)``.
+    """
+    squares = np.einsum("ij,ij->i", vectors, vectors)
+    norms = np.sqrt(squares)
+    extreme = ~((squares >= _SQUARES_LOW) & (squares <= _SQUARES_HIGH))
+    if np.any(extreme):
+        rows = vectors[extreme]
+        scale = np.max(np.abs(rows), axis=1)
+        scaled = rows / np.where(scale > 0.0, scale, 1.0)[:, None]
+        norms[extreme] = scale * np.sqrt(np.einsum("ij,ij->i", scaled, scaled))
+    return norms
 
 
 def _unit_directions(directions, name="directions"):
     """Rows scaled to unit length without overflow or underflow; zero rows are an error."""
-    scaled, _ = _scaled_rows(directions)
-    norms = np.sqrt(np.einsum("ij,ij->i", scaled, scaled))
+    norms = _row_norms(directions)
     if np.any(norms == 0.0):
         row = int(np.argmin(norms))
         raise ValueError(f"{name} must be non-zero; row {row} is {directions[row].tolist()}")
-    return np.ascontiguousarray(scaled / norms[:, None])
+    return np.ascontiguousarray(directions / norms[:, None])
 
 
 def _check_origin_size(name, origins):
