@@ -1,4 +1,4 @@
-"""The bounded log-spherical partition of the paper's Eq. 1-3 (conventions: GEOMETRY.md)."""
+"""The bounded log-spherical partition of the paper's Eq. 1-3 (conventions: docs/geometry.md)."""
 
 import math
 
@@ -84,7 +84,7 @@ def _check_phi(low, high, name):
 
 
 def rho_edges_for(rho_min, rho_max, n_rho, spacing="log"):
-    """Radial edges for one of the named spacings (GEOMETRY.md, "Radial spacings").
+    """Radial edges for one of the named spacings (docs/geometry.md, "Radial spacings").
 
     Parameters
     ----------
@@ -163,7 +163,7 @@ class Grid:
 
     Notes
     -----
-    The frame (GEOMETRY.md): ``theta = atan2(x, z)`` is the azimuth about the y
+    The frame (docs/geometry.md): ``theta = atan2(x, z)`` is the azimuth about the y
     axis from +z towards +x, ``phi = atan2(y, sqrt(x^2 + z^2))`` the elevation.
     Cell ``(i, j, k)`` holds ``rho_edges[i] <= rho < rho_edges[i+1]`` and likewise
     for theta and phi; a value on the last edge of an axis belongs to the last cell.

@@ -19,7 +19,7 @@ import numpy as np
 
 
 def classify(points, rho_edges, theta_edges, phi_edges):
-    """(M, 3) points -> (M, 3) cells, -1 rows outside. Same tie rule as GEOMETRY.md + README."""
+    """(M, 3) points -> (M, 3) cells, -1 rows outside. Same tie rule as docs/geometry.md."""
     points = np.atleast_2d(points)
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     rho = np.sqrt(x * x + y * y + z * z)
@@ -132,7 +132,7 @@ def oracle_trace(origin, direction, rho_edges, theta_edges, phi_edges):
 def normalise(cells, t_enter, t_exit, tol):
     """Drop segments shorter than ``tol`` and re-merge neighbours of the same cell.
 
-    GEOMETRY.md: segments shorter than about 1e-9 of the region's size may be
+    docs/geometry.md: segments shorter than about 1e-9 of the region's size may be
     kept or dropped by floating point; the comparison ignores them.
     """
     out_cells, out_t0, out_t1 = [], [], []
@@ -165,7 +165,7 @@ UNRESOLVED_TANGENT = 4.0 * np.sqrt(np.finfo(np.float64).eps)
 
 
 def compare(got, want, scale, rel=1e-9):
-    """Return None when two traces agree (GEOMETRY.md), else a message saying where they differ.
+    """Return None when two traces agree (docs/geometry.md), else a message saying where they differ.
 
     Segments shorter than ``rel * scale`` are dropped on both sides; the rest must
     have equal cells and distances within ``rel`` (relative to the distance, or to

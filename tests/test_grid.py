@@ -1,4 +1,4 @@
-"""Grid construction, spacings (GEOMETRY.md formulas) and conversions."""
+"""Grid construction, spacings (docs/geometry.md formulas) and conversions."""
 
 import numpy as np
 import pytest
@@ -21,7 +21,7 @@ def test_paper_spacing_formula_and_cell_zero():
     expected = 10.0 + base ** np.arange(11.0)
     expected[0] = 10.0
     np.testing.assert_allclose(grid.rho_edges, expected, rtol=1e-14)
-    # [rho_min, rho_min + 1) is not lost (GEOMETRY.md): it is folded into cell 0.
+    # [rho_min, rho_min + 1) is not lost (docs/geometry.md): it is folded into cell 0.
     assert grid.cell_of([0.0, 0.0, 10.5])[0] == 0
     assert grid.cell_of([0.0, 0.0, 10.0 + base * 1.01])[0] == 1
 

@@ -17,7 +17,7 @@ monotone with at most one turning point*:
 On each monotone branch the zone at both ends is found by the same lookup the
 public ``cell_of`` uses, so the *number* of crossings of every family is fixed
 before stepping.  Crossing *times* come from closed forms (Eq. 9a, 9c and the
-exact cone quadratic of GEOMETRY.md) and are clamped into the branch, so
+exact cone quadratic of docs/geometry.md) and are clamped into the branch, so
 rounding can move a crossing by an ulp or two but can never drop one or add
 one: the indices cannot drift.
 

@@ -5,7 +5,7 @@ outside it: ``-1`` is below the first edge (the egocentric gap for rho),
 ``n`` is above the last edge.  For theta the zones are cyclic and ``n_theta``
 is the sector outside a partial range.
 
-Tie rule (GEOMETRY.md leaves it to us): a value on an interior edge belongs to
+Tie rule (docs/geometry.md, "Ties"): a value on an interior edge belongs to
 the cell above it (``edges[i] <= v < edges[i+1]``); a value equal to the last
 edge belongs to the last cell, so the region is closed as in Eq. 1 and a ray
 running along the +y axis (phi == pi/2 everywhere) is inside when
@@ -72,7 +72,7 @@ def azimuth(x, z):
 
 @jit
 def elevation(x, y, z):
-    """phi = atan2(y, sqrt(x^2 + z^2)) in [-pi/2, pi/2] (GEOMETRY.md, not the printed Eq. 7)."""
+    """phi = atan2(y, sqrt(x^2 + z^2)) in [-pi/2, pi/2] (docs/geometry.md, not the printed Eq. 7)."""
     return np.arctan2(y + 0.0, np.sqrt(x * x + z * z))
 
 
