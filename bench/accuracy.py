@@ -97,7 +97,8 @@ def main(argv=None):
     exact_ns = exact_s / crossed * 1e9
     best = min(rows, key=lambda r: r["ns_per_voxel_crossed"])
     lines = [
-        f"{args.rays:,} random rays, {args.cells}^3 cells (rho {grid.rho_min:g}-{grid.rho_max:g} m, "
+        f"{args.rays:,} random rays, {args.cells}^3 cells "
+        f"(rho {grid.rho_min:g}-{grid.rho_max:g} m, "
         f"log), {crossed / args.rays:.1f} voxels crossed per ray; single thread, best of "
         f"{args.repeats}; exact: {exact_ns:.1f} ns per voxel, every cell, no extra.",
         "",
@@ -110,7 +111,8 @@ def main(argv=None):
             f"| {r['default_t_m']:g} | {100 * r['rays_missing_cells']:.1f}% "
             f"| {r['mean_missed_cells_per_ray']:.2f} ({r['mean_skipped_cells_per_ray']:.2f} + "
             f"{r['mean_cells_lost_after_first_exit_per_ray']:.2f}) "
-            f"| {100 * r['rays_with_extra_cells']:.1f}% | {100 * r['rays_with_repeated_cells']:.1f}% "
+            f"| {100 * r['rays_with_extra_cells']:.1f}% "
+            f"| {100 * r['rays_with_repeated_cells']:.1f}% "
             f"| {r['ns_per_voxel_crossed']:.0f} | {r['exact_speedup_per_voxel']:.1f}x |"
         )
     lines += ["", f"fastest bisect: default_t = {best['default_t_m']:g} m, "

@@ -69,7 +69,8 @@ def main(argv=None):
              "|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['half_angle_deg']:g} deg | {r['n_rays']} ({r['n_rays_rule']}) "
-                     f"| {r['cells']} | {r['segments']} | {r['best_ms']:.2f} | {r['median_ms']:.2f} "
+                     f"| {r['cells']} | {r['segments']} | {r['best_ms']:.2f} "
+                     f"| {r['median_ms']:.2f} "
                      f"| {r['packed_best_ms']:.2f} | {r['speedup']:.2f}x |")
     write_results("cone", argv, "\n".join(lines),
                   {"threads": numba.get_num_threads(), "rows": rows})

@@ -41,7 +41,8 @@ def main(argv=None):
         "| bisect (default_t = 1.5531) |",
         "|---:|---:|---:|---:|---:|---:|---|---|---|---|",
     ]
-    for n, ((i, j, k), t0, t1, b) in enumerate(zip(exact.cells, exact.t_enter, exact.t_exit, bounds)):
+    rows = zip(exact.cells, exact.t_enter, exact.t_exit, bounds)
+    for n, ((i, j, k), t0, t1, b) in enumerate(rows):
         lines.append(
             f"| {n} | {i} | {j} | {k} | {t0:.3f} | {t1:.3f} | {b[0]:.2f}-{b[1]:.2f} "
             f"| {np.degrees(b[2]):.0f} to {np.degrees(b[3]):.0f} "

@@ -103,7 +103,8 @@ def table(points):
     last = {name: points[name][-1] for name in METHODS}
     exact_ns = last["exact"]["ns_per_voxel"]
     lines = [
-        f"At {last['exact']['cells_per_axis']}^3 cells ({last['exact']['voxels_per_ray']:.0f} voxels "
+        f"At {last['exact']['cells_per_axis']}^3 cells "
+        f"({last['exact']['voxels_per_ray']:.0f} voxels "
         "crossed per ray), single thread, one run:",
         "",
         "| method | voxels reported / crossed per ray | ns per voxel | ns per voxel / exact's |",
@@ -129,7 +130,8 @@ def main(argv=None):
     points = measure(args.sizes, args.rays, args.repetitions)
     text = table(points)
     print(text)
-    command = ("python -m bench.fig4 " + " ".join(argv if argv is not None else sys.argv[1:])).strip()
+    arguments = argv if argv is not None else sys.argv[1:]
+    command = ("python -m bench.fig4 " + " ".join(arguments)).strip()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({
         "command": command, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),

@@ -40,7 +40,8 @@ def run(grid, scans=3, width=640, height=480):
     ray = lt.trace(grid, eyes, gaze)
     targets = lt.gaze_targets(occupancy, eyes, gaze, threshold=0.6)
     fixation = lt.fixation_probability(occupancy, eyes, gaze, half_angle=np.radians(4))
-    object_cells = {tuple(c) for c in grid.cell_of(points[labels == scene.index("object")]).tolist()}
+    on_object = points[labels == scene.index("object")]
+    object_cells = {tuple(c) for c in grid.cell_of(on_object).tolist()}
     return {
         "scene": scene, "eyes": eyes, "target": target, "points": points, "labels": labels,
         "depth": depth, "occupancy": occupancy, "ray": ray, "targets": targets,
@@ -63,12 +64,14 @@ def figure(grid, result, path):
     line = np.stack([eyes, eyes + 1.6 * (target - eyes)])
     fig = plt.figure(figsize=(13, 10))
     ax = fig.add_subplot(2, 2, 1)
-    shown = ax.imshow(np.where(np.isfinite(result["depth"]), result["depth"], np.nan), cmap="viridis")
+    depth = np.where(np.isfinite(result["depth"]), result["depth"], np.nan)
+    shown = ax.imshow(depth, cmap="viridis")
     fig.colorbar(shown, ax=ax, label="depth (m)")
     ax.set_title("(a) the robot's depth camera")
     ax.set_axis_off()
     panels = [
-        ("(b) occupancy (red) and the gaze ray (yellow)", result["occupancy"].occupied(0.6), "tab:red"),
+        ("(b) occupancy (red) and the gaze ray (yellow)", result["occupancy"].occupied(0.6),
+         "tab:red"),
         ("(c) cells the gaze traverses (yellow)", result["ray"].unique(), "gold"),
         ("(d) gaze targets: traversed and occupied (green)", result["targets"].cells, "tab:green"),
     ]
@@ -113,9 +116,12 @@ def main(argv=None):
               "| cell | probability | on the object |", "|---|---:|---|"]
     for cell, p in zip(fixation.cells[:5].tolist(), fixation.values[:5]):
         lines.append(f"| {tuple(cell)} | {p:.3f} | {tuple(cell) in object_cells} |")
-    share = sum(p for c, p in zip(fixation.cells.tolist(), fixation.values) if tuple(c) in object_cells)
-    lines += ["", f"object is the top target: {result['top_is_object']}; top fixation cell is on the "
-                  f"object: {result['fixation_top_is_object']} (object cells hold {share:.2f} of the "
+    share = sum(p for c, p in zip(fixation.cells.tolist(), fixation.values)
+                if tuple(c) in object_cells)
+    lines += ["", f"object is the top target: {result['top_is_object']}; "
+                  "top fixation cell is on the "
+                  f"object: {result['fixation_top_is_object']} "
+                  f"(object cells hold {share:.2f} of the "
                   "fixation probability)."]
     text = "\n".join(lines)
     print(text)

@@ -19,7 +19,6 @@ from bench.workload import write_results
 from logsph_trace.scene import table_scene
 
 
-
 def main(argv=None):
     grid = lt.Grid(0.3, 10.0, 64, 360, 180)
     scene, _, _ = table_scene()
@@ -45,7 +44,8 @@ def main(argv=None):
                      "best_ms": min(times) * 1e3, "median_ms": float(np.median(times)) * 1e3,
                      "trace_best_ms": min(trace_times) * 1e3,
                      "speedup": min(trace_times) / min(times)})
-    lines = [f"{grid}; 640 x 480 depth image of the table scene; {numba.get_num_threads()} threads; "
+    lines = [f"{grid}; 640 x 480 depth image of the table scene; "
+             f"{numba.get_num_threads()} threads; "
              "10 scans, interleaved with the baseline: trace_many of the same rays up to their "
              "end points (the exact traversal, segments kept)", "",
              "| sensor | points | cells crossed | best (ms) | median (ms) | trace_many best (ms) "

@@ -72,14 +72,16 @@ def measure(n_rays, cells, repeats, threads):
     voxels = {}
     for _ in range(repeats):  # alternate the kernels so both see the same noise
         numba.set_num_threads(1)
-        seconds, traces = best_time(lambda: lt.trace_many(grid, origins, directions, parallel=False), 1)
+        seconds, traces = best_time(
+            lambda: lt.trace_many(grid, origins, directions, parallel=False), 1)
         timings["exact"] = min(timings["exact"], seconds)
         voxels["exact"] = traces.cells.shape[0]
         seconds, traces = best_time(lambda: box.trace_many(origins, directions, parallel=False), 1)
         timings["amanatides_woo"] = min(timings["amanatides_woo"], seconds)
         voxels["amanatides_woo"] = traces.cells.shape[0]
         numba.set_num_threads(threads)
-        seconds, traces = best_time(lambda: lt.trace_many(grid, origins, directions, parallel=True), 1)
+        seconds, traces = best_time(
+            lambda: lt.trace_many(grid, origins, directions, parallel=True), 1)
         timings["exact_parallel"] = min(timings["exact_parallel"], seconds)
     numba.set_num_threads(threads)
 
@@ -123,12 +125,14 @@ def table(result, first_call):
         f"| {aw['rays_per_second']:,.0f} |",
         "",
         f"exact / Amanatides-Woo per voxel: {result['exact_over_amanatides_woo_per_voxel']:.2f}x",
-        f"exact, {par['threads']} threads: {par['speedup_over_serial']:.2f}x the single-thread speed",
+        f"exact, {par['threads']} threads: {par['speedup_over_serial']:.2f}x "
+        "the single-thread speed",
     ]
     if first_call:
         lines += [
             f"import + first trace: cold cache {first_call['cold_import_and_first_trace_s']:.1f} s "
-            f"(+ parallel build: {first_call['cold_import_first_trace_and_first_parallel_batch_s']:.1f} s "
+            "(+ parallel build: "
+            f"{first_call['cold_import_first_trace_and_first_parallel_batch_s']:.1f} s "
             f"in all), warm cache {first_call['warm_import_and_first_trace_s']:.2f} s",
         ]
     return "\n".join(lines)
@@ -140,7 +144,8 @@ def main(argv=None):
     parser.add_argument("--cells", type=int, default=128)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--no-first-call", action="store_true", help="skip the cold/warm start timing")
+    parser.add_argument("--no-first-call", action="store_true",
+                        help="skip the cold/warm start timing")
     parser.add_argument("--out", type=Path, default=RESULTS / "traversal.json")
     args = parser.parse_args(argv)
 

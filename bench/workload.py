@@ -55,7 +55,8 @@ def write_results(name, argv, text, record):
     from pathlib import Path
 
     results = Path(__file__).resolve().parent / "results"
-    command = (f"python -m bench.{name} " + " ".join(argv if argv is not None else sys.argv[1:])).strip()
+    arguments = argv if argv is not None else sys.argv[1:]
+    command = (f"python -m bench.{name} " + " ".join(arguments)).strip()
     print(text)
     results.mkdir(parents=True, exist_ok=True)
     stamped = {"command": command, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), **record}

@@ -4,9 +4,11 @@ Which voxels of a bounded log-spherical grid does a ray cross, in what order,
 and for how long? See ``Grid``, ``trace`` and ``trace_many``.
 """
 
-from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
+from importlib import metadata as _metadata
+
 from .api import METHODS, Trace, Traces, trace, trace_many
 from .cone import ConeTrace, trace_cone, trace_cones
+from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
 from .occupancy import GazeTargets, OccupancyGrid, fixation_probability, gaze_targets
 
 __all__ = [
@@ -27,4 +29,7 @@ __all__ = [
     "trace_cones",
     "trace_many",
 ]
-__version__ = "0.1.0"
+try:  # one version, written once: pyproject.toml's
+    __version__ = _metadata.version("logsph_trace")
+except _metadata.PackageNotFoundError:  # a source tree that was never installed
+    __version__ = "0+unknown"

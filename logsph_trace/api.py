@@ -43,7 +43,7 @@ class Trace:
         return self.t_exit - self.t_enter
 
     def unique(self):
-        """The set view the paper returns: each cell once, in order of first entry.
+        """Return each cell once, in order of first entry (the set the paper returns).
 
         Returns
         -------
@@ -169,7 +169,7 @@ def _unit_directions(directions, name="directions"):
 
 
 def _check_origin_size(name, origins):
-    """The kernels square an origin's length: beyond ~1.3e154 it would overflow."""
+    """Reject origins beyond ~1.3e154, whose squared length (the kernels use it) overflows."""
     squares = np.einsum("ij,ij->i", origins, origins)
     if not np.all(np.isfinite(squares)):
         row = int(np.argmin(np.isfinite(squares)))
@@ -209,8 +209,11 @@ def _offsets(counts):
 
 
 def run_csr(count, fill, origins, directions, args):
-    """Count pass, prefix sum, fill pass: every ray writes its own slice, so the
-    result does not depend on the thread count or the order rays finish in."""
+    """Trace by a count pass, a prefix sum and a fill pass.
+
+    Every ray writes its own slice, so the result does not depend on the
+    thread count or the order rays finish in.
+    """
     offsets = _offsets(count(origins, directions, *args))
     segments = _segment_arrays(int(offsets[-1]))
     fill(origins, directions, *args, offsets, *segments)
@@ -261,7 +264,9 @@ PARALLEL_MIN_RAYS = 512
 
 
 def _run_exact(grid, origins, directions, t_max, parallel):
-    """Serial: one appending pass. Parallel: one appending chunk per thread, then
+    """Trace with the exact method, serially or on all threads.
+
+    Serial: one appending pass. Parallel: one appending chunk per thread, then
     packing; or, if a chunk outgrows its estimated room, a bound pass (set-up
     only, no stepping), a trace pass into bounded slices and a gather.
     Every path runs the same per-ray code, so the outputs are identical.
@@ -279,8 +284,10 @@ def _run_exact(grid, origins, directions, t_max, parallel):
 
 
 def _run_exact_chunks(grid, origins, directions, t_max, args, threads):
-    """Parallel: :func:`trace_regions` into fresh arrays, then the regions packed
-    left in place; None if a chunk did not fit."""
+    """Trace in parallel into fresh arrays, then pack the regions left in place.
+
+    Uses :func:`trace_regions`; returns None if a chunk did not fit.
+    """
     traced = trace_regions(grid, origins, directions, t_max, args, threads, _segment_arrays)
     if traced is None:
         return None
@@ -290,8 +297,9 @@ def _run_exact_chunks(grid, origins, directions, t_max, args, threads):
 
 
 def trace_regions(grid, origins, directions, t_max, args, chunks, segment_arrays):
-    """``chunks`` contiguous chunks of rays, each appending into its own region
-    (one ``prange`` iteration each).
+    """Trace ``chunks`` contiguous chunks of rays, each into its own region.
+
+    Each chunk is one ``prange`` iteration and appends to its region.
 
     Regions are sized from a sample of the rays with a half to spare (all
     rays' worst case when there are too few to sample); ``segment_arrays(n)``

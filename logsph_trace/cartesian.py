@@ -2,9 +2,9 @@
 
 import numpy as np
 
+from .api import Traces, _rays, run_csr
 from .grid import _as_count, _as_finite
 from .kernels import cartesian as _kernels
-from .api import Traces, _rays, run_csr
 
 
 class CartesianGrid:
@@ -33,10 +33,11 @@ class CartesianGrid:
         self.voxel_size = (high - low) / shape
 
     def __repr__(self):
-        return f"CartesianGrid(low={self.low.tolist()}, high={self.high.tolist()}, shape={self.shape})"
+        return (f"CartesianGrid(low={self.low.tolist()}, high={self.high.tolist()}, "
+                f"shape={self.shape})")
 
     def trace_many(self, origins, directions=None, parallel=True):
-        """Voxels each ray crosses, as :class:`~logsph_trace.Traces` (same layout as ``trace_many``)."""
+        """Voxels each ray crosses, as :class:`~logsph_trace.Traces` (the CSR of trace_many)."""
         origins, directions = _rays(origins, directions)
         args = (self.low, self.voxel_size, self._shape)
         if parallel:

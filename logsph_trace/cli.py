@@ -70,7 +70,7 @@ def _add_grid_options(parser):
 
 
 def _load_rays(path):
-    """The (m, 6) rays of a .npy (memory-mapped: read a chunk at a time) or .csv file."""
+    """Open the (m, 6) rays of a .npy (memory-mapped, read a chunk at a time) or .csv file."""
     path = Path(path)
     if not path.is_file():
         raise CliError(f"no such rays file: {path}")
@@ -149,7 +149,8 @@ def _print_rows(rows, columns, fmt, stream):
             stream.write(",".join(repr(row[name]) for name, _ in columns) + "\n")
     else:
         widths = [len(format(rows[0][name], spec)) if rows else len(name) for name, spec in columns]
-        stream.write(" ".join(f"{name:>{max(w, len(name))}}" for (name, _), w in zip(columns, widths))
+        header = (f"{name:>{max(w, len(name))}}" for (name, _), w in zip(columns, widths))
+        stream.write(" ".join(header)
                      + "\n")
         for row in rows:
             stream.write(" ".join(f"{format(row[name], spec):>{max(w, len(name))}}"
@@ -200,7 +201,7 @@ def cmd_trace(args):
 
 
 def cmd_demo(args):
-    """The paper's worked example and a gaze cone into the synthetic scene; figures to disk."""
+    """Run the paper's worked example and a gaze cone into the synthetic scene."""
     try:
         import matplotlib
     except ImportError:
@@ -235,7 +236,8 @@ def cmd_demo(args):
         bvm.integrate(points, [0.0, 0.0, 0.0])
     targets = gaze_targets(bvm, eyes, target - eyes)
     fixation = fixation_probability(bvm, eyes, target - eyes, half_angle=np.radians(4))
-    object_cells = {tuple(c) for c in room.cell_of(points[labels == scene.index("object")]).tolist()}
+    on_object = points[labels == scene.index("object")]
+    object_cells = {tuple(c) for c in room.cell_of(on_object).tolist()}
     print("\nA person 1.5 m from the robot looks at an object on a table (cf. Fig. 5):")
     print(f"  {points.shape[0]:,} depth points -> occupancy map {room.shape}")
     print(f"  {'cell':>16} {'fixation':>9} {'on the object':>14}")
@@ -279,14 +281,21 @@ def _scene_figure(grid, bvm, eyes, target, targets, points, path):
 
 
 def cmd_bench(args):
-    """The Fig. 4 timing study (bench/fig4.py must be importable: run from the repository)."""
-    if (Path.cwd() / "bench" / "fig4.py").is_file() and str(Path.cwd()) not in sys.path:
-        sys.path.insert(0, str(Path.cwd()))  # the console script's path is its bin/ folder
-    try:
-        from bench import fig4
-    except ImportError:
-        raise CliError("logsph-trace bench runs bench/fig4.py: run it from the repository root") \
-            from None
+    """Run the Fig. 4 timing study: ``bench/fig4.py`` of the source checkout.
+
+    The timing study lives beside the package, not in it, so it runs from a
+    clone (an editable install included) wherever the command is started,
+    and an installed wheel says what it needs instead. Only the package's own
+    checkout is put on ``sys.path``, never the working directory.
+    """
+    checkout = Path(__file__).resolve().parents[1]
+    if not (checkout / "bench" / "fig4.py").is_file():
+        raise CliError("logsph-trace bench runs bench/fig4.py from the source repository, which "
+                       "an installed wheel does not include: clone the repository, install it "
+                       "with pip install -e, and run it there")
+    if str(checkout) not in sys.path:
+        sys.path.insert(0, str(checkout))
+    from bench import fig4
     argv = ["--sizes", "8", "16", "32", "--repetitions", "20"] if args.quick else []
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -295,7 +304,7 @@ def cmd_bench(args):
 
 
 def build_parser():
-    """The argparse parser of ``logsph-trace`` and its subcommands."""
+    """Build the argparse parser of ``logsph-trace`` and its subcommands."""
     parser = argparse.ArgumentParser(
         prog="logsph-trace",
         description="Exact ray traversal of bounded log-spherical grids (gaze tracing).",

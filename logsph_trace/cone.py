@@ -76,6 +76,7 @@ class ConeTrace:
 
     @property
     def traces(self):
+        """The cone's rays traced one by one (:class:`Traces`), computed on first use."""
         if self._traces is None:
             traces = _trace_rays(self.grid, self.origin, self.directions)
             object.__setattr__(self, "_traces", traces)  # a cache, not a change of value
@@ -111,7 +112,7 @@ def _frame(axis):
 
 
 def cone_directions(axis, half_angle, n_rays, pattern="fibonacci"):
-    """Unit directions inside a cone, and the angle of each from the axis.
+    """Sample unit directions inside a cone, with the angle of each from the axis.
 
     Parameters
     ----------
@@ -250,8 +251,11 @@ def _aggregate(grid, offsets, cells, t_enter, axis, weights, per_segment=False, 
 
 
 def _trace_rays(grid, origin, directions):
-    """Cone rays exactly as given (already unit: no renormalising, which could
-    move them by an ulp), all threads; ``origin`` (3,) or one per ray."""
+    """Trace cone rays exactly as given, on all threads.
+
+    They are already unit: renormalising could move them by an ulp.
+    ``origin`` is (3,) or one per ray.
+    """
     origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
     return _run_exact(grid, origins, directions, np.full(directions.shape[0], np.inf), True)
 

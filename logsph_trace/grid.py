@@ -62,7 +62,7 @@ def _check_edges(name, edges):
 
 
 def _check_squares(name, rho_edges):
-    """The kernels compare squared distances: rho_max^2 must be a finite number."""
+    """Reject a rho_max whose square (the kernels compare squared distances) overflows."""
     if not rho_edges[-1] <= _SQRT_MAX:
         raise ValueError(
             f"{name} must be below about 1e154 so that its square is finite, "
@@ -187,7 +187,7 @@ class Grid:
 
     @classmethod
     def from_edges(cls, rho_edges, theta_edges, phi_edges):
-        """A grid from any strictly increasing edges (radians for the angles).
+        """Build a grid from any strictly increasing edges (radians for the angles).
 
         The paper's remark that the method generalises "by substituting the
         conversion function": lookups use binary search on these edges.
@@ -206,13 +206,14 @@ class Grid:
         _check_phi(phi[0], phi[-1], "phi_edges")
         phi = np.clip(phi, -np.pi / 2, np.pi / 2)
         grid = cls.__new__(cls)
-        grid._setup(rho, theta, phi, "explicit", _locate.EXPLICIT, _locate.EXPLICIT, _locate.EXPLICIT)
+        grid._setup(rho, theta, phi, "explicit",
+                    _locate.EXPLICIT, _locate.EXPLICIT, _locate.EXPLICIT)
         return grid
 
     @classmethod
     def from_increments(cls, rho_min, rho_max, n_rho, d_theta=1.0, d_phi=1.0,
                         theta_range=(-180.0, 180.0), phi_range=(-90.0, 90.0), spacing="paper"):
-        """A grid in the paper's terms: angular increments and ranges in **degrees**.
+        """Build a grid in the paper's terms: angular increments and ranges in **degrees**.
 
         ``d_theta`` and ``d_phi`` must divide their ranges into a whole number of
         cells (section 2.1: "discretised into cells by defining the increment in
@@ -309,7 +310,7 @@ class Grid:
 
     # ---- arrays the kernels take ------------------------------------------
     def kernel_args(self):
-        """The grid as the flat tuple of arrays and scalars the traversal kernels take."""
+        """Return the grid as the flat tuple of arrays and scalars the kernels take."""
         cached = getattr(self, "_kernel_args", None)
         if cached is None:
             theta = self.theta_edges
@@ -402,7 +403,10 @@ def _points(name, points):
 
 
 def cartesian_to_spherical(points):
-    """(M, 3) Cartesian -> (M, 3) ``(rho, theta, phi)``, theta in (-pi, pi], phi in [-pi/2, pi/2]."""
+    """(M, 3) Cartesian to (M, 3) ``(rho, theta, phi)``.
+
+    ``theta`` lies in (-pi, pi] and ``phi`` in [-pi/2, pi/2].
+    """
     array, single = _points("points", points)
     x, y, z = array[:, 0], array[:, 1], array[:, 2]
     out = np.stack([

@@ -201,7 +201,7 @@ def _check_occupancy(occupancy):
 
 
 def gaze_targets(occupancy, origin, direction, threshold=0.6):
-    """The paper's Fig. 5 rule: cells on the gaze ray whose occupancy exceeds ``threshold``.
+    """Find the cells on the gaze ray whose occupancy exceeds ``threshold`` (Fig. 5's rule).
 
     Returns
     -------

@@ -61,7 +61,8 @@ def plot_scene(grid, origin, direction, t_max=None, trace=None, ax=None):
     ax.scatter([origin[0]], [origin[2]], [origin[1]], color="tab:green", s=60, label="person")
     # The outer sphere as a wireframe, to show the bounded region.
     u, v = np.meshgrid(np.linspace(-np.pi, np.pi, 25), np.linspace(-np.pi / 2, np.pi / 2, 13))
-    shell = spherical_to_cartesian(np.stack([np.full(u.size, grid.rho_max), u.ravel(), v.ravel()], 1))
+    outer = np.stack([np.full(u.size, grid.rho_max), u.ravel(), v.ravel()], 1)
+    shell = spherical_to_cartesian(outer)
     ax.plot_wireframe(shell[:, 0].reshape(u.shape), shell[:, 2].reshape(u.shape),
                       shell[:, 1].reshape(u.shape), color="0.8", linewidth=0.4)
     ax.set_xlabel("x")
@@ -77,7 +78,7 @@ def plot_rho_phi(grid, origin, direction, t_max=None, trace=None, ax=None):
 
 
 def plot_rho_theta(grid, origin, direction, t_max=None, trace=None, ax=None):
-    """The ray in the rho-theta plane over the grid's boundaries."""
+    """Draw the ray in the rho-theta plane over the grid's boundaries."""
     return _plot_rho_angle(grid, origin, direction, t_max, trace, ax, axis="theta")
 
 
@@ -138,7 +139,7 @@ def plot_index_boxes(trace, ax=None, color="tab:red"):
 
 
 def cell_corners(grid, cell):
-    """The 8 corners (Cartesian) of a cell: every (rho, theta, phi) bound combination."""
+    """Return the 8 corners (Cartesian) of a cell: every (rho, theta, phi) bound combination."""
     bounds = grid.cell_bounds(np.asarray(cell))
     combos = np.array([[r, t, p] for r in bounds[0:2] for t in bounds[2:4] for p in bounds[4:6]])
     return spherical_to_cartesian(combos)
@@ -165,7 +166,7 @@ def plot_cells(grid, cells, ax=None, color="tab:red", alpha=0.25):
 
 
 def trace_figure(grid, origin, direction, trace, title=None):
-    """The four panels of the paper's Fig. 3 for one traced ray; returns the Figure."""
+    """Draw the four panels of the paper's Fig. 3 for one traced ray; return the Figure."""
     plt = _pyplot()
     fig = plt.figure(figsize=(12, 10))
     ax_a = fig.add_subplot(2, 2, 1, projection="3d")
@@ -188,7 +189,7 @@ def trace_figure(grid, origin, direction, trace, title=None):
 
 
 def plot_heatmap(grid, values, ax=None, reduce="max", cmap="magma", label=None):
-    """A map over the grid (occupancy, fixation probability) as a heat map over theta and phi.
+    """Draw a map over the grid (occupancy, fixation) as a heat map over theta and phi.
 
     Parameters
     ----------

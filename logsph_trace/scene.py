@@ -68,7 +68,7 @@ class Scene:
     def depth_points(self, sensor=(0.0, 0.0, 0.0), width=640, height=480,
                      field_of_view=(60.0, 45.0), forward=(0.0, 0.0, 1.0), up=(0.0, 1.0, 0.0),
                      max_range=10.0):
-        """A depth camera at ``sensor``: its point cloud and the box each point lies on.
+        """Render a depth camera at ``sensor``: its point cloud and the box of each point.
 
         Parameters
         ----------
@@ -98,7 +98,8 @@ class Scene:
         right /= np.linalg.norm(right)
         up = np.cross(forward, right)
         half_w, half_h = np.tan(np.radians(np.asarray(field_of_view, dtype=np.float64)) / 2)
-        u, v = np.meshgrid(np.linspace(half_w, -half_w, width), np.linspace(half_h, -half_h, height))
+        u, v = np.meshgrid(np.linspace(half_w, -half_w, width),
+                           np.linspace(half_h, -half_h, height))
         rays = forward + u.reshape(-1, 1) * right + v.reshape(-1, 1) * up
         rays /= np.linalg.norm(rays, axis=1)[:, None]
         distance, label = self.cast(sensor, rays)
@@ -109,7 +110,7 @@ class Scene:
 
 
 def table_scene():
-    """The Fig. 5 set-up: a table with an object on it, a wall behind, a person looking.
+    """Build the Fig. 5 set-up: a table with an object on it, a wall behind, a person.
 
     The robot's depth sensor is at the origin looking along +z. Returns
     ``(scene, eyes, target)``: the scene, the person's eye position (about

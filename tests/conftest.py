@@ -2,9 +2,9 @@
 
 import numpy as np
 import pytest
+from oracle import TANGENT_SLIVER, compare, oracle_trace  # noqa: F401
 
 import logsph_trace as lt
-from oracle import TANGENT_SLIVER, compare, oracle_trace  # noqa: F401
 
 
 def _explicit_grid():

@@ -32,7 +32,8 @@ def classify(points, rho_edges, theta_edges, phi_edges):
     phi = np.arctan2(y + 0.0, np.sqrt(x * x + z * z))
     cells = np.empty((points.shape[0], 3), dtype=np.int64)
     inside = np.ones(points.shape[0], dtype=bool)
-    for axis, (value, edges) in enumerate(((rho, rho_edges), (theta, theta_edges), (phi, phi_edges))):
+    axes = ((rho, rho_edges), (theta, theta_edges), (phi, phi_edges))
+    for axis, (value, edges) in enumerate(axes):
         index = np.searchsorted(edges, value, side="right") - 1
         index[value == edges[-1]] = len(edges) - 2  # the region is closed (Eq. 1)
         inside &= (value >= edges[0]) & (value <= edges[-1])
@@ -76,7 +77,8 @@ def crossings(origin, direction, rho_edges, theta_edges, phi_edges):
     px, py, pz = origin + t_c * direction
     ts = []
     for radius in rho_edges:
-        ts += _quadratic_roots(1.0, ox * dx + oy * dy + oz * dz, ox * ox + oy * oy + oz * oz - radius**2)
+        ts += _quadratic_roots(1.0, ox * dx + oy * dy + oz * dz,
+                               ox * ox + oy * oy + oz * oz - radius**2)
     for angle in np.asarray(theta_edges, dtype=np.longdouble):
         denom = dx * np.cos(angle) - dz * np.sin(angle)
         if denom != 0.0:
@@ -165,7 +167,7 @@ UNRESOLVED_TANGENT = 4.0 * np.sqrt(np.finfo(np.float64).eps)
 
 
 def compare(got, want, scale, rel=1e-9):
-    """Return None when two traces agree (docs/geometry.md), else a message saying where they differ.
+    """None when two traces agree (docs/geometry.md), else a message saying where they differ.
 
     Segments shorter than ``rel * scale`` are dropped on both sides; the rest must
     have equal cells and distances within ``rel`` (relative to the distance, or to

@@ -96,7 +96,8 @@ def singular_ray(rng, grid, kind, offset):
             rho = rng.uniform(grid.rho_min, grid.rho_max)
         else:
             rho = rng.uniform(0.1, 1.0) * grid.rho_max
-        generatrix = np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+        generatrix = np.array([np.cos(phi) * np.sin(theta), np.sin(phi),
+                               np.cos(phi) * np.cos(theta)])
         across = np.array([np.cos(theta), 0.0, -np.sin(theta)])  # horizontal tangent
         normal = np.cross(generatrix, across)
         # Tangent to the cone at the touch point, within 1 rad of the horizontal.

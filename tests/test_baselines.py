@@ -2,9 +2,9 @@
 
 import numpy as np
 import pytest
+from conftest import GRIDS, assert_matches_oracle, random_rays
 
 import logsph_trace as lt
-from conftest import GRIDS, assert_matches_oracle, random_rays
 
 
 def test_thibaudeau_matches_the_oracle(grid):

@@ -2,9 +2,9 @@
 
 import numpy as np
 import pytest
+from oracle import box_oracle_trace, compare
 
 from logsph_trace.cartesian import CartesianGrid
-from oracle import box_oracle_trace, compare
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 1), (7, 8, 9), (16, 16, 16)])

@@ -47,7 +47,8 @@ def test_grid_spec():
     assert result.returncode == 0, result.stderr
     want = lt.trace(lt.Grid(0.3, 10, 16, 36, 18), [0.4, 1.5, 1.2], [-0.1, -0.4, 1])
     assert [[r["i"], r["j"], r["k"]] for r in json.loads(result.stdout)] == want.cells.tolist()
-    bad = run("trace", "--grid", "0.3,10,16", "--origin", "0", "0", "1", "--direction", "0", "0", "1")
+    bad = run("trace", "--grid", "0.3,10,16", "--origin", "0", "0", "1",
+              "--direction", "0", "0", "1")
     assert bad.returncode == 2 and "--grid takes RHO_MIN,RHO_MAX" in bad.stderr
     bad = run("trace", "--grid", "0.3,10,16,36,18,cubic", "--origin", "0", "0", "1",
               "--direction", "0", "0", "1")
@@ -123,6 +124,21 @@ def test_bench_quick_writes_the_timing_study(tmp_path):
     result = run("bench", "--quick", "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "fig4.png").exists() and (tmp_path / "fig4.json").exists()
+
+
+def test_bench_runs_from_any_directory_without_importing_from_it(tmp_path):
+    # A bench/ folder in the working directory must not be picked up.
+    (tmp_path / "bench").mkdir()
+    (tmp_path / "bench" / "__init__.py").write_text("raise SystemExit('imported from cwd')\n")
+    result = run("bench", "--quick", "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "out" / "fig4.json").exists()
+
+
+def test_version_is_the_installed_metadata():
+    from importlib.metadata import version
+
+    assert lt.__version__ == version("logsph_trace")
 
 
 def test_a_reader_that_stops_early_gets_no_traceback():

@@ -7,9 +7,9 @@ hide a wrong kernel.
 
 import numpy as np
 import pytest
+from conftest import GRIDS, TANGENT_SLIVER, assert_matches_oracle
 
 import logsph_trace as lt
-from conftest import GRIDS, TANGENT_SLIVER, assert_matches_oracle
 
 
 @pytest.fixture(scope="module")

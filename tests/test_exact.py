@@ -2,11 +2,11 @@
 
 import numpy as np
 import pytest
+from conftest import GRIDS, TANGENT_SLIVER, assert_matches_oracle, random_rays
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import logsph_trace as lt
-from conftest import GRIDS, TANGENT_SLIVER, assert_matches_oracle, random_rays
 
 RAYS_PER_GRID = 700  # 9 grids -> 6,300 random rays
 
@@ -122,7 +122,8 @@ def test_unique_keeps_first_entry_order():
 # Values on a 1e-6 lattice: hypothesis still finds zeros, axes and round numbers,
 # but not 1e-226, whose square underflows (a documented limit: components are
 # 0 or larger than about 1e-150 in magnitude).
-coordinate = st.floats(-15.0, 15.0, allow_nan=False, allow_infinity=False).map(lambda v: round(v, 6))
+coordinate = st.floats(-15.0, 15.0, allow_nan=False, allow_infinity=False).map(
+    lambda v: round(v, 6))
 component = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False).map(lambda v: round(v, 6))
 
 

@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
-
-import logsph_trace as lt
 from conftest import GRIDS
 from oracle import classify
+
+import logsph_trace as lt
 
 
 def test_log_spacing_formula():

@@ -48,7 +48,8 @@ def test_kernels_run_without_jit(tmp_path):
     plain = np.load(out)
     jitted_out = tmp_path / "jit.npz"
     env.pop("NUMBA_DISABLE_JIT")
-    subprocess.run([sys.executable, "-c", SCRIPT, str(jitted_out)], env=env, check=True, timeout=300)
+    subprocess.run([sys.executable, "-c", SCRIPT, str(jitted_out)], env=env, check=True,
+                   timeout=300)
     jitted = np.load(jitted_out)
     for name in ("offsets", "cells", "box_offsets", "box_cells", "points", "bisect_cells",
                  "bisect_offsets", "thibaudeau_cells", "thibaudeau_offsets"):

@@ -18,14 +18,14 @@ sliver to a few percent, so no sliver straddles both thresholds.
 
 import numpy as np
 import pytest
+from conftest import GRIDS
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-import logsph_trace as lt
-from conftest import GRIDS
-from logsph_trace.occupancy import OccupancyGrid, fixation_probability, gaze_targets
 from oracle import UNRESOLVED_TANGENT, compare, oracle_trace
 from singular import CLASSES, OFFSETS, aim, singular_ray, singular_rays
+
+import logsph_trace as lt
+from logsph_trace.occupancy import OccupancyGrid, fixation_probability, gaze_targets
 
 RAYS_PER_OFFSET = 8  # 9 grids x 5 classes x 6 offsets x 8 = 2,160 rays, each traced 3 ways
 TANGENTS = ("sphere_tangent", "phi_turn")
@@ -59,7 +59,8 @@ def _check(grid, kind, offsets, origins, directions, traces, want, label):
         got = (traces[row].cells, traces[row].t_enter, traces[row].t_exit)
         message = _agrees(got, want[row], scale, rel)
         if message is not None:
-            failures.append(f"{label} {kind} offset={offsets[row]:g} origin={origins[row].tolist()} "
+            failures.append(f"{label} {kind} offset={offsets[row]:g} "
+                            f"origin={origins[row].tolist()} "
                             f"direction={directions[row].tolist()}: {message}")
     assert not failures, f"{len(failures)} of {len(origins)} rays differ; first:\n{failures[0]}"
 
@@ -139,7 +140,8 @@ def test_origin_on_a_half_plane_and_a_ray_nearly_inside_it(edge, angle):
         settled = 1e-15 * np.linalg.norm(origin) / angle
         message = compare(_after((got.cells, got.t_enter, got.t_exit), settled),
                           _after(want, settled), grid.rho_max)
-        assert message is None, f"origin={origin.tolist()} direction={direction.tolist()}: {message}"
+        assert message is None, (f"origin={origin.tolist()} direction={direction.tolist()}: "
+                                 f"{message}")
 
 
 def _after(trace, t_from):
@@ -163,7 +165,8 @@ def test_cones_with_their_axis_on_a_singular_set(name, kind):
             want = oracle_trace(origin, direction, grid.rho_edges, grid.theta_edges,
                                 grid.phi_edges)
             message = _agrees((one.cells, one.t_enter, one.t_exit), want, scale, rel)
-            assert message is None, f"{kind} offset={offset} direction={direction.tolist()}: {message}"
+            assert message is None, (f"{kind} offset={offset} "
+                                     f"direction={direction.tolist()}: {message}")
         # ... and the cone's cells and first distances are those of its rays.
         got = {tuple(c): t for c, t in zip(cone.cells.tolist(), cone.t_first)}
         first = {}

@@ -2,9 +2,9 @@
 
 import numpy as np
 import pytest
+from conftest import GRIDS, random_rays
 
 import logsph_trace as lt
-from conftest import GRIDS, random_rays
 
 
 def _cut(trace, t_max):

@@ -2,8 +2,9 @@
 
 A cone's rays stay close to each other, so at each radius the cells they
 cross fill a small box of (theta, phi) index space; the boxes are addressed
-densely (no hashing, no sort of all segments). The azimuth is shifted by ``j_shift`` first, so a cone straddling
-the theta seam still makes a compact box.
+densely (no hashing, no sort of all segments). The azimuth is shifted by
+``j_shift`` first, so a cone straddling the theta seam still makes a compact
+box.
 """
 
 import numpy as np

@@ -680,7 +680,8 @@ def _trace_chunks(starts, regions, origins, directions, t_max, rho_edges, rho_sq
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
         ends[chunk], reached[chunk] = trace_span(
-            starts[chunk], starts[chunk + 1], origins, directions, t_max, rho_edges, rho_sq, rho_kind,
+            starts[chunk], starts[chunk + 1], origins, directions, t_max,
+            rho_edges, rho_sq, rho_kind,
             theta_edges, theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2,
             phi_nappe, phi_kind, times, zones, lookups, cells, t_enter, t_exit, offsets,
             regions[chunk], regions[chunk + 1],

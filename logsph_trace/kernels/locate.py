@@ -72,7 +72,7 @@ def azimuth(x, z):
 
 @jit
 def elevation(x, y, z):
-    """phi = atan2(y, sqrt(x^2 + z^2)) in [-pi/2, pi/2] (docs/geometry.md, not the printed Eq. 7)."""
+    """phi = atan2(y, sqrt(x^2 + z^2)), in [-pi/2, pi/2] (docs/geometry.md, not Eq. 7)."""
     return np.arctan2(y + 0.0, np.sqrt(x * x + z * z))
 
 

@@ -23,7 +23,6 @@ from .exact import (
 )
 from .locate import BLOCK, locate, phi_zone, rho_zone, theta_zone
 
-
 # Per-thread flag bits of a cell in one scan.
 FREE = 1
 HIT = 2
