@@ -206,3 +206,67 @@ def box_oracle_trace(origin, direction, low, high, shape):
     index = np.minimum(index, np.asarray(shape) - 1)
     keep = inside & (ends > starts)
     return index[keep], starts[keep], ends[keep]
+
+
+# ---- references for what is built on traces (cones, the occupancy map) ----
+
+
+def union_of_rays(traces, ray_weights):
+    """Reference cone aggregation: per cell, the weight of the rays that cross it and the
+    first distance at which any ray reaches it (``trace_cone``'s ``weights``, unnormalised,
+    and ``t_first``). ``traces`` is a sequence of per-ray (cells, t_enter) pairs."""
+    weights, first = {}, {}
+    for ray, (cells, t_enter) in enumerate(traces):
+        seen = set()
+        for cell, t0 in zip(map(tuple, np.asarray(cells).tolist()), t_enter):
+            first[cell] = min(first.get(cell, np.inf), t0)
+            if cell not in seen:
+                weights[cell] = weights.get(cell, 0.0) + ray_weights[ray]
+                seen.add(cell)
+    return weights, first
+
+
+def reference_log_odds(shape, offsets, cells, t_exit, distances, is_hit,
+                       p_hit=0.7, p_miss=0.4):
+    """One scan's log-odds map from its sensor rays' traces (CSR, cut at ``distances``).
+
+    OctoMap's update, once per cell per scan: every cell a ray crosses is free,
+    the cell holding its end point is hit when ``is_hit`` and the trace reaches
+    the end point, and a hit wins over a miss.
+    """
+    cells = np.asarray(cells, dtype=np.int64)
+    flat = np.ravel_multi_index(tuple(cells.T), shape)
+    free = np.zeros(int(np.prod(shape)), dtype=bool)
+    free[flat] = True
+    counts = np.diff(offsets)
+    last = np.asarray(offsets[1:]) - 1
+    ends = (counts > 0) & np.asarray(is_hit)
+    ends[ends] &= np.asarray(t_exit)[last[ends]] >= np.asarray(distances)[ends]
+    hit = np.zeros_like(free)
+    hit[flat[last[ends]]] = True
+    log_odds = np.zeros(free.shape, dtype=np.float32)
+    log_odds[free] = np.float32(np.log(p_miss / (1.0 - p_miss)))
+    log_odds[hit] = np.float32(np.log(p_hit / (1.0 - p_hit)))
+    return log_odds.reshape(shape)
+
+
+def first_occupied(traces, ray_weights, log_odds, unknown=0.0, free_below=0.5,
+                   min_distance=0.0):
+    """Reference fixation probability per cell: sum over rays of weight x P(the cell is
+    the first occupied one the ray meets), with P(c) = p_c prod(1 - p) over the distinct
+    cells before c. ``traces``: per-ray (cells, t_exit) pairs; ``log_odds`` the dense map."""
+    out = {}
+    for ray, (cells, t_exit) in enumerate(traces):
+        clear = 1.0
+        seen = set()
+        for cell, t1 in zip(map(tuple, np.asarray(cells).tolist()), t_exit):
+            if t1 <= min_distance or cell in seen:
+                continue
+            seen.add(cell)
+            value = float(log_odds[cell])
+            p = unknown if value == 0.0 else 1.0 / (1.0 + np.exp(-value))
+            if value != 0.0 and p < free_below:
+                p = 0.0
+            out[cell] = out.get(cell, 0.0) + ray_weights[ray] * p * clear
+            clear *= 1.0 - p
+    return out

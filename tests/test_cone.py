@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from oracle import union_of_rays
 
 import logsph_trace as lt
 from logsph_trace.cone import cone_directions, default_ray_count, trace_cone, trace_cones
@@ -12,16 +13,8 @@ GAZE = np.array([-0.1, -0.4, 1.0])
 
 
 def _union_of_rays(cone):
-    """Reference aggregation in plain numpy: weight and first distance per cell."""
-    weights, first = {}, {}
-    for ray, one in enumerate(cone.traces):
-        seen = set()
-        for cell, t0 in zip(map(tuple, one.cells.tolist()), one.t_enter):
-            first[cell] = min(first.get(cell, np.inf), t0)
-            if cell not in seen:
-                weights[cell] = weights.get(cell, 0.0) + cone.ray_weights[ray]
-                seen.add(cell)
-    return weights, first
+    """Reference aggregation (tests/oracle.py) of the cone's rays, traced again one by one."""
+    return union_of_rays([(one.cells, one.t_enter) for one in cone.traces], cone.ray_weights)
 
 
 def test_zero_half_angle_is_the_single_ray():

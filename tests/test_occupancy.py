@@ -3,6 +3,7 @@
 import numba
 import numpy as np
 import pytest
+from oracle import first_occupied, reference_log_odds
 
 import logsph_trace as lt
 from logsph_trace.occupancy import OccupancyGrid, fixation_probability, gaze_targets
@@ -131,9 +132,7 @@ def test_bad_occupancy_input(call, match):
 
 
 def _reference_log_odds(grid, points, sensor, max_range=None):
-    """One scan's log-odds from the exact trace (``trace_many`` with t_max), in numpy:
-    every cell a ray crosses is free, the cell holding its end point is hit, a
-    hit wins, each cell updated once."""
+    """One scan's log-odds, built in numpy (tests/oracle.py) from ``trace_many`` with t_max."""
     sensor = np.asarray(sensor, dtype=np.float64)
     offsets = points - sensor
     distances = np.linalg.norm(offsets, axis=1)
@@ -143,18 +142,8 @@ def _reference_log_odds(grid, points, sensor, max_range=None):
         is_hit = distances <= max_range
         distances = np.minimum(distances, max_range)
     traces = lt.trace_many(grid, np.broadcast_to(sensor, offsets.shape), offsets, t_max=distances)
-    flat = np.ravel_multi_index(tuple(traces.cells.T.astype(np.int64)), grid.shape)
-    free = np.zeros(int(np.prod(grid.shape)), dtype=bool)
-    free[flat] = True
-    last = traces.offsets[1:] - 1
-    ends = (traces.counts > 0) & is_hit
-    ends[ends] &= traces.t_exit[last[ends]] >= distances[ends]
-    hit = np.zeros_like(free)
-    hit[flat[last[ends]]] = True
-    log_odds = np.zeros(free.shape, dtype=np.float32)
-    log_odds[free] = np.float32(np.log(0.4 / 0.6))
-    log_odds[hit] = np.float32(np.log(0.7 / 0.3))
-    return log_odds.reshape(grid.shape)
+    return reference_log_odds(grid.shape, traces.offsets, traces.cells, traces.t_exit, distances,
+                              is_hit)
 
 
 SCANS = [  # (grid, sensor): where the rays start decides the path and the cases met
@@ -180,3 +169,27 @@ def test_integrate_equals_the_exact_trace(grid, sensor):
     fast = OccupancyGrid(grid).integrate(points, sensor, max_range=12.0)
     np.testing.assert_array_equal(fast.log_odds,
                                   _reference_log_odds(grid, points, sensor, max_range=12.0))
+
+
+@pytest.mark.parametrize("half_angle, unknown, free_below, min_distance",
+                         [(0.0, 0.0, 0.5, 0.0), (np.radians(4), 0.0, 0.5, 0.0),
+                          (np.radians(4), 0.3, 0.0, 0.0), (np.radians(6), 0.1, 0.5, 1.0)])
+def test_fixation_probability_equals_the_numpy_reference(half_angle, unknown, free_below,
+                                                         min_distance):
+    rng = np.random.default_rng(71)
+    occupancy = OccupancyGrid(GRID)
+    occupancy.integrate(_wall(3.0, 60), [0.0, 0.0, 0.0])
+    occupancy.log_odds[rng.random(GRID.shape) < 0.01] = 1.5  # scattered occupied cells
+    origin, gaze = [0.2, 0.3, -0.4], [0.1, -0.05, 1.0]
+    got = fixation_probability(occupancy, origin, gaze, half_angle=half_angle, n_rays=60,
+                               unknown=unknown, free_below=free_below,
+                               min_distance=min_distance, dense=True)
+    cone = lt.trace_cone(GRID, origin, gaze, half_angle, n_rays=60) if half_angle else None
+    directions = cone.directions if cone else np.array([gaze])
+    weights = cone.ray_weights if cone else np.ones(1)
+    traces = lt.trace_many(GRID, np.broadcast_to(origin, directions.shape), directions)
+    want = first_occupied([(one.cells, one.t_exit) for one in traces], weights,
+                          occupancy.log_odds, unknown, free_below, min_distance)
+    assert set(map(tuple, np.argwhere(got > 0).tolist())) == {c for c, v in want.items() if v > 0}
+    for cell, value in want.items():
+        assert got[cell] == pytest.approx(value, rel=1e-12, abs=1e-15)
