@@ -208,15 +208,17 @@ def _offsets(counts):
     return offsets
 
 
-def run_csr(count, fill, origins, directions, args):
-    """Trace by a count pass, a prefix sum and a fill pass.
+def run_csr(rows, origins, directions, args):
+    """Trace by a count pass, a prefix sum and a fill pass of one ``*_rows`` kernel.
 
     Every ray writes its own slice, so the result does not depend on the
     thread count or the order rays finish in.
     """
-    offsets = _offsets(count(origins, directions, *args))
+    no_offsets = np.empty(0, dtype=np.int64)
+    counts = rows(origins, directions, *args, no_offsets, *_segment_arrays(0), False)
+    offsets = _offsets(counts)
     segments = _segment_arrays(int(offsets[-1]))
-    fill(origins, directions, *args, offsets, *segments)
+    rows(origins, directions, *args, offsets, *segments, True)
     return Traces(offsets, *segments)
 
 
@@ -441,14 +443,11 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     kinds = (grid.rho_edges, grid.rho_kind, grid.theta_edges, grid.theta_kind)
     if method == "bisect":
         args = kinds + (grid.theta_full, grid.phi_edges, grid.phi_kind, default_t, max_iter)
-        module, name = _bisect, "bisect"
+        rows = _bisect.bisect_rows
     else:
         args = kinds + (grid.phi_edges, grid.phi_kind)
-        module, name = _thibaudeau, "thibaudeau"
-    suffix = "_rows_parallel" if parallel else "_rows"
-    count = getattr(module, f"count_{name}{suffix}")
-    fill = getattr(module, f"fill_{name}{suffix}")
-    return run_csr(count, fill, origins, directions, args)
+        rows = _thibaudeau.thibaudeau_rows
+    return run_csr(rows.pick(parallel), origins, directions, args)
 
 
 def trace(grid, origin, direction, method="exact", default_t=PAPER_DEFAULT_T, max_iter=None,

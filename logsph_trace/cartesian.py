@@ -40,11 +40,7 @@ class CartesianGrid:
         """Voxels each ray crosses, as :class:`~logsph_trace.Traces` (the CSR of trace_many)."""
         origins, directions = _rays(origins, directions)
         args = (self.low, self.voxel_size, self._shape)
-        if parallel:
-            kernels = (_kernels.count_box_rows_parallel, _kernels.fill_box_rows_parallel)
-        else:
-            kernels = (_kernels.count_box_rows, _kernels.fill_box_rows)
-        return run_csr(*kernels, origins, directions, args)
+        return run_csr(_kernels.box_rows.pick(bool(parallel)), origins, directions, args)
 
 
 __all__ = ["CartesianGrid", "Traces"]

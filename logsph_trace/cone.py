@@ -238,7 +238,7 @@ def _aggregate(grid, offsets, cells, t_enter, axis, weights, per_segment=False, 
         starts, firsts = chunks[0], chunks[1][:-1]
     j_axis = grid.cell_of(grid.rho_max * 0.5 * axis)[1]
     j_shift = (grid.n_theta // 2 - max(int(j_axis), 0)) % grid.n_theta
-    cells, weights, t_first = _cone.aggregate(
+    cells, weights, t_first = _cone.aggregate_boxes(
         offsets, starts, np.ascontiguousarray(firsts), cells, t_enter, weights, per_segment,
         grid.n_rho, grid.n_theta, j_shift,
     )

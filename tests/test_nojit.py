@@ -60,3 +60,13 @@ def test_kernels_run_without_jit(tmp_path):
     np.testing.assert_array_equal(plain["cone_cells"], jitted["cone_cells"])
     np.testing.assert_allclose(plain["cone_weights"], jitted["cone_weights"], rtol=1e-12)
     assert lt.Grid(0.3, 10.0, 6, 8, 5).shape == (6, 8, 5)
+
+
+def test_the_cache_switch_turns_numba_caching_off():
+    probe = ("import logsph_trace._jit as j; from logsph_trace.kernels import locate; "
+             "print(j.CACHE, type(locate.locate._cache).__name__)")
+    for value, want in (("0", "False NullCache"), ("1", "True FunctionCache")):
+        env = dict(os.environ, LOGSPH_TRACE_CACHE=value)
+        out = subprocess.run([sys.executable, "-c", probe], env=env, check=True,
+                             capture_output=True, text=True, timeout=300).stdout
+        assert out.split() == want.split(), out

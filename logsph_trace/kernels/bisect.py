@@ -19,7 +19,7 @@ a ray grazing a boundary cannot loop forever.
 import numpy as np
 from numba import prange
 
-from .._jit import jit, jit_serial_and_parallel
+from .._jit import jit, jit_twins
 from .locate import BLOCK, cell_of_point
 
 _NONE = 0
@@ -163,12 +163,15 @@ def bisect_ray(ox, oy, oz, dx, dy, dz,
     return count
 
 
-def _count_bisect_rows(origins, directions, rho_edges, rho_kind, theta_edges, theta_kind,
-                       theta_full, phi_edges, phi_kind, default_t, max_iter):
+@jit_twins
+def bisect_rows(origins, directions, rho_edges, rho_kind, theta_edges, theta_kind, theta_full,
+                phi_edges, phi_kind, default_t, max_iter, offsets, cells, t_enter, t_exit, write):
+    """Count (``write`` False) or write (True) every ray's cells; return the counts.
+
+    One source for both CSR passes (see ``cartesian.box_rows``).
+    """
     n_rays = origins.shape[0]
     counts = np.empty(n_rays, dtype=np.int64)
-    no_cells = np.empty((0, 3), dtype=np.int32)
-    no_times = np.empty(0, dtype=np.float64)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         candidates = np.empty(11)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
@@ -176,25 +179,7 @@ def _count_bisect_rows(origins, directions, rho_edges, rho_kind, theta_edges, th
                 origins[row, 0], origins[row, 1], origins[row, 2],
                 directions[row, 0], directions[row, 1], directions[row, 2],
                 rho_edges, rho_kind, theta_edges, theta_kind, theta_full, phi_edges, phi_kind,
-                default_t, max_iter, candidates, no_cells, no_times, no_times, 0, False,
+                default_t, max_iter, candidates, cells, t_enter, t_exit,
+                offsets[row] if write else 0, write,
             )
     return counts
-
-
-def _fill_bisect_rows(origins, directions, rho_edges, rho_kind, theta_edges, theta_kind,
-                      theta_full, phi_edges, phi_kind, default_t, max_iter,
-                      offsets, cells, t_enter, t_exit):
-    n_rays = origins.shape[0]
-    for block in prange((n_rays + BLOCK - 1) // BLOCK):
-        candidates = np.empty(11)
-        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            bisect_ray(
-                origins[row, 0], origins[row, 1], origins[row, 2],
-                directions[row, 0], directions[row, 1], directions[row, 2],
-                rho_edges, rho_kind, theta_edges, theta_kind, theta_full, phi_edges, phi_kind,
-                default_t, max_iter, candidates, cells, t_enter, t_exit, offsets[row], True,
-            )
-
-
-count_bisect_rows, count_bisect_rows_parallel = jit_serial_and_parallel(_count_bisect_rows)
-fill_bisect_rows, fill_bisect_rows_parallel = jit_serial_and_parallel(_fill_bisect_rows)

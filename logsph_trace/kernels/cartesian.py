@@ -7,7 +7,7 @@ count pass + fill pass, same segment output) so timings compare like for like.
 import numpy as np
 from numba import prange
 
-from .._jit import jit, jit_serial_and_parallel
+from .._jit import jit, jit_twins
 
 
 @jit
@@ -83,27 +83,18 @@ def trace_box_ray(ox, oy, oz, dx, dy, dz, low, size, shape, cells, t_enter, t_ex
     return count
 
 
-def _count_box_rows(origins, directions, low, size, shape):
+@jit_twins
+def box_rows(origins, directions, low, size, shape, offsets, cells, t_enter, t_exit, write):
+    """Count (``write`` False) or write (True) every ray's voxels; return the counts.
+
+    One source for both CSR passes: counting passes empty output arrays, and
+    writing puts ray ``row``'s voxels from ``offsets[row]`` on.
+    """
     counts = np.empty(origins.shape[0], dtype=np.int64)
-    no_cells = np.empty((0, 3), dtype=np.int32)
-    no_times = np.empty(0, dtype=np.float64)
     for row in prange(origins.shape[0]):
         counts[row] = trace_box_ray(
             origins[row, 0], origins[row, 1], origins[row, 2],
             directions[row, 0], directions[row, 1], directions[row, 2],
-            low, size, shape, no_cells, no_times, no_times, 0, False,
+            low, size, shape, cells, t_enter, t_exit, offsets[row] if write else 0, write,
         )
     return counts
-
-
-def _fill_box_rows(origins, directions, low, size, shape, offsets, cells, t_enter, t_exit):
-    for row in prange(origins.shape[0]):
-        trace_box_ray(
-            origins[row, 0], origins[row, 1], origins[row, 2],
-            directions[row, 0], directions[row, 1], directions[row, 2],
-            low, size, shape, cells, t_enter, t_exit, offsets[row], True,
-        )
-
-
-count_box_rows, count_box_rows_parallel = jit_serial_and_parallel(_count_box_rows)
-fill_box_rows, fill_box_rows_parallel = jit_serial_and_parallel(_fill_box_rows)

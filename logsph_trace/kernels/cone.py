@@ -20,7 +20,8 @@ def _shifted(j, j_shift, n_theta):
     return shifted - n_theta if shifted >= n_theta else shifted
 
 
-def _aggregate(offsets, starts, firsts, cells, t_enter, weights, per_segment, n_rho, n_theta,
+@jit(parallel=True)
+def aggregate_boxes(offsets, starts, firsts, cells, t_enter, weights, per_segment, n_rho, n_theta,
                j_shift):
     """Per cell: summed weight over the rays crossing it (each ray once), first t.
 
@@ -110,6 +111,3 @@ def _aggregate(offsets, starts, firsts, cells, t_enter, weights, per_segment, n_
             out_first[found] = first[0, box]
             found += 1
     return out_cells, out_weight, out_first
-
-
-aggregate = jit(_aggregate, parallel=True)

@@ -568,7 +568,11 @@ def trace_ray(
     return count
 
 
-def _bound_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
+# The parallel batch kernels. One thread never needs them: it traces by
+# appending (``trace_span``). Each ray writes only its own slice or region, so
+# the output does not depend on the number of threads.
+@jit(parallel=True)
+def bound_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
                 theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind):
     """Pass 1: an upper bound on each ray's segments, and its zone lookups for pass 2."""
     n_rays = origins.shape[0]
@@ -590,7 +594,8 @@ def _bound_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, t
     return bounds, lookups
 
 
-def _trace_rows(origins, directions, t_max, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
+@jit(parallel=True)
+def trace_rows(origins, directions, t_max, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
                 theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind,
                 lookups, bound_offsets, cells, t_enter, t_exit):
     """Pass 2: each ray writes its segments from bound_offsets[r] on; returns the counts."""
@@ -615,7 +620,8 @@ def _trace_rows(origins, directions, t_max, rho_edges, rho_sq, rho_kind, theta_e
     return counts
 
 
-def _gather_rows(bound_offsets, offsets, loose_cells, loose_enter, loose_exit,
+@jit(parallel=True)
+def gather_rows(bound_offsets, offsets, loose_cells, loose_enter, loose_exit,
                  cells, t_enter, t_exit):
     """Pass 3: copy each ray's segments from its bound slice to its final slice."""
     for row in prange(offsets.shape[0] - 1):
@@ -663,7 +669,8 @@ def trace_span(first, last, origins, directions, t_max, rho_edges, rho_sq, rho_k
     return used, last
 
 
-def _trace_chunks(starts, regions, origins, directions, t_max, rho_edges, rho_sq, rho_kind,
+@jit(parallel=True)
+def trace_chunks(starts, regions, origins, directions, t_max, rho_edges, rho_sq, rho_kind,
                   theta_edges, theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2,
                   phi_nappe, phi_kind, cells, t_enter, t_exit, offsets):
     """Chunk c traces rays starts[c]..starts[c+1]-1 into regions[c]..regions[c+1]-1.
@@ -713,12 +720,3 @@ def pack_chunks(starts, regions, ends, offsets, cells, t_enter, t_exit):
                 offsets[row] -= shift
         total += length
     return total
-
-
-# The parallel batch kernels. One thread never needs them: it traces by
-# appending (``trace_span``). Each ray writes only its own slice or region, so
-# the output does not depend on the number of threads.
-bound_rows = jit(_bound_rows, parallel=True)
-trace_rows = jit(_trace_rows, parallel=True)
-gather_rows = jit(_gather_rows, parallel=True)
-trace_chunks = jit(_trace_chunks, parallel=True)

@@ -191,7 +191,8 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
     return -1
 
 
-def _mark_scan(origin, directions, distances, is_hit, rho_edges, rho_sq, rho_kind, theta_edges,
+@jit(parallel=True)
+def mark_scan(origin, directions, distances, is_hit, rho_edges, rho_sq, rho_kind, theta_edges,
                theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe,
                phi_kind, free, hits):
     """Walk every ray of a scan from one ``origin`` (see ``_walk_ray``).
@@ -232,7 +233,8 @@ def _update(log_odds, cell, hit, free, log_hit, log_miss, log_min, log_max):
         log_odds[cell] = max(log_odds[cell] + log_miss, log_min)
 
 
-def _apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, log_max):
+@jit(parallel=True)
+def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, log_max):
     """OctoMap's update, once per cell per scan: a hit wins over a miss; clamped.
 
     ``free`` is indexed column-major, ``(j * n_phi + k) * n_rho + i``, so that
@@ -265,8 +267,6 @@ def _apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, 
                         (bits & FREE) != 0, log_hit, log_miss, log_min, log_max)
 
 
-mark_scan = jit(_mark_scan, parallel=True)
-apply_scan = jit(_apply_scan, parallel=True)
 
 
 @jit
@@ -307,7 +307,8 @@ def first_occupied(offsets, cells, t_exit, log_odds, n_theta, n_phi, ray_weights
     return out
 
 
-def _mark_radial(points, lengths, distances, is_hit, rho_edges, rho_kind, theta_edges, theta_kind,
+@jit(parallel=True)
+def mark_radial(points, lengths, distances, is_hit, rho_edges, rho_kind, theta_edges, theta_kind,
                  phi_edges, phi_kind, free_extent, hits):
     """The sensor at the grid's origin: every ray is radial, so its cells are one
     (theta, phi) column, free up to the shell holding its end point.
@@ -352,7 +353,8 @@ def _mark_radial(points, lengths, distances, is_hit, rho_edges, rho_kind, theta_
                 hits[row] = (shell * n_theta + j) * n_phi + k
 
 
-def _apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit, log_miss,
+@jit(parallel=True)
+def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit, log_miss,
                   log_min, log_max):
     """``apply_scan`` for the radial case: cell (i, j, k) is free if i is below a
     thread's free extent of its column; ``hit_mask`` (n_cells,) uint8, zero,
@@ -377,7 +379,3 @@ def _apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit
         if cell >= 0 and hit_mask[cell] != 0:
             _update(log_odds, cell, True, False, log_hit, log_miss, log_min, log_max)
             hit_mask[cell] = 0
-
-
-mark_radial = jit(_mark_radial, parallel=True)
-apply_radial = jit(_apply_radial, parallel=True)

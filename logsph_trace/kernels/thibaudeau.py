@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numba import prange
 
-from .._jit import jit, jit_serial_and_parallel
+from .._jit import jit, jit_twins
 from .exact import line_geometry
 from .locate import BLOCK, phi_zone, rho_zone, theta_zone
 
@@ -129,13 +129,16 @@ def thibaudeau_ray(ox, oy, oz, dx, dy, dz,
     return count
 
 
-def _count_thibaudeau_rows(origins, directions, rho_edges, rho_kind, theta_edges, theta_kind,
-                           phi_edges, phi_kind):
+@jit_twins
+def thibaudeau_rows(origins, directions, rho_edges, rho_kind, theta_edges, theta_kind, phi_edges,
+                    phi_kind, offsets, cells, t_enter, t_exit, write):
+    """Count (``write`` False) or write (True) every ray's cells; return the counts.
+
+    One source for both CSR passes (see ``cartesian.box_rows``).
+    """
     n_rays = origins.shape[0]
     counts = np.empty(n_rays, dtype=np.int64)
     size = scratch_length(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
-    no_cells = np.empty((0, 3), dtype=np.int32)
-    no_times = np.empty(0, dtype=np.float64)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         breaks = np.empty(size)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
@@ -143,29 +146,6 @@ def _count_thibaudeau_rows(origins, directions, rho_edges, rho_kind, theta_edges
                 origins[row, 0], origins[row, 1], origins[row, 2],
                 directions[row, 0], directions[row, 1], directions[row, 2],
                 rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind,
-                breaks, no_cells, no_times, no_times, 0, False,
+                breaks, cells, t_enter, t_exit, offsets[row] if write else 0, write,
             )
     return counts
-
-
-def _fill_thibaudeau_rows(origins, directions, rho_edges, rho_kind, theta_edges, theta_kind,
-                          phi_edges, phi_kind, offsets, cells, t_enter, t_exit):
-    n_rays = origins.shape[0]
-    size = scratch_length(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
-    for block in prange((n_rays + BLOCK - 1) // BLOCK):
-        breaks = np.empty(size)
-        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            thibaudeau_ray(
-                origins[row, 0], origins[row, 1], origins[row, 2],
-                directions[row, 0], directions[row, 1], directions[row, 2],
-                rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind,
-                breaks, cells, t_enter, t_exit, offsets[row], True,
-            )
-
-
-count_thibaudeau_rows, count_thibaudeau_rows_parallel = jit_serial_and_parallel(
-    _count_thibaudeau_rows
-)
-fill_thibaudeau_rows, fill_thibaudeau_rows_parallel = jit_serial_and_parallel(
-    _fill_thibaudeau_rows
-)
