@@ -23,13 +23,13 @@ GAZE = (-0.1, -0.4, 1.0)
 def _packed(grid, origin, gaze, half_angle, n_rays):
     """The cone as issue 4 first built it, kept as this benchmark's in-run
     baseline: trace into fresh packed arrays, then aggregate."""
-    from logsph_trace.cone import _aggregate, _sample, _trace_rays
+    from logsph_trace.cone import aggregate_cells, sample_rays, trace_given_rays
 
     origin = np.asarray(origin, dtype=np.float64)
-    directions, ray_weights = _sample(grid, origin, gaze, half_angle, n_rays, "fibonacci",
+    directions, ray_weights = sample_rays(grid, origin, gaze, half_angle, n_rays, "fibonacci",
                                       "gaussian", None)
-    traces = _trace_rays(grid, origin, directions)
-    return _aggregate(grid, traces.offsets, traces.cells, traces.t_enter, directions[0],
+    traces = trace_given_rays(grid, origin, directions)
+    return aggregate_cells(grid, traces.offsets, traces.cells, traces.t_enter, directions[0],
                       ray_weights)
 
 

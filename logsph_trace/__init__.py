@@ -6,10 +6,11 @@ and for how long? See ``Grid``, ``trace`` and ``trace_many``.
 
 from importlib import metadata as _metadata
 
-from .api import METHODS, Trace, Traces, trace, trace_many
 from .cone import ConeTrace, trace_cone, trace_cones
 from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
 from .occupancy import GazeTargets, OccupancyGrid, fixation_probability, gaze_targets
+from .trace import METHODS, trace, trace_many
+from .traces import Trace, Traces
 
 __all__ = [
     "ConeTrace",

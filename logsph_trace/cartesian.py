@@ -2,9 +2,10 @@
 
 import numpy as np
 
-from .api import Traces, _rays, run_csr
-from .grid import _as_count, _as_finite
+from . import _validate as validate
+from ._batching import run_csr
 from .kernels import cartesian as _kernels
+from .traces import Traces
 
 
 class CartesianGrid:
@@ -19,9 +20,9 @@ class CartesianGrid:
     """
 
     def __init__(self, low, high, shape):
-        low = np.array([_as_finite(f"low[{axis}]", v) for axis, v in enumerate(low)])
-        high = np.array([_as_finite(f"high[{axis}]", v) for axis, v in enumerate(high)])
-        shape = np.array([_as_count(f"shape[{axis}]", n) for axis, n in enumerate(shape)])
+        low = np.array([validate.finite(f"low[{axis}]", v) for axis, v in enumerate(low)])
+        high = np.array([validate.finite(f"high[{axis}]", v) for axis, v in enumerate(high)])
+        shape = np.array([validate.count(f"shape[{axis}]", n) for axis, n in enumerate(shape)])
         if low.shape != (3,) or high.shape != (3,) or shape.shape != (3,):
             raise ValueError("low, high and shape must each have 3 entries")
         if np.any(low >= high):
@@ -38,7 +39,7 @@ class CartesianGrid:
 
     def trace_many(self, origins, directions=None, parallel=True):
         """Voxels each ray crosses, as :class:`~logsph_trace.Traces` (the CSR of trace_many)."""
-        origins, directions = _rays(origins, directions)
+        origins, directions = validate.rays(origins, directions)
         args = (self.low, self.voxel_size, self._shape)
         return run_csr(_kernels.box_rows.pick(bool(parallel)), origins, directions, args)
 

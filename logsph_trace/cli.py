@@ -99,7 +99,7 @@ def _trace_batch(grid, rays, out, progress):
     """
     import tempfile
 
-    from .api import trace_many
+    from .trace import trace_many
 
     total = rays.shape[0]
     counts = np.zeros(total, dtype=np.int64)
@@ -177,8 +177,8 @@ def _print_cone(cone, fmt, stream):
 
 def cmd_trace(args):
     """``logsph-trace trace``: one ray, a gaze cone, or a batch file."""
-    from .api import trace
     from .cone import trace_cone
+    from .trace import trace
 
     grid = _grid(args)
     if args.rays:

@@ -6,23 +6,15 @@ crossed, each with the weight of the rays that cross it and the distance at
 which the cone first reaches it.
 """
 
-import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .api import (
-    Traces,
-    _check_grid,
-    _check_origin_size,
-    _run_exact,
-    _segment_arrays,
-    _unit_directions,
-    _vectors,
-    trace_regions,
-)
+from . import _batching as batching
+from . import _validate as validate
 from .grid import Grid
 from .kernels import cone as _cone
+from .traces import Traces
 
 PATTERNS = ("fibonacci", "rings")
 WEIGHTINGS = ("gaussian", "uniform")
@@ -78,7 +70,7 @@ class ConeTrace:
     def traces(self):
         """The cone's rays traced one by one (:class:`Traces`), computed on first use."""
         if self._traces is None:
-            traces = _trace_rays(self.grid, self.origin, self.directions)
+            traces = trace_given_rays(self.grid, self.origin, self.directions)
             object.__setattr__(self, "_traces", traces)  # a cache, not a change of value
         return self._traces
 
@@ -87,20 +79,6 @@ class ConeTrace:
 
     def __repr__(self):
         return f"ConeTrace({len(self)} cells from {self.directions.shape[0]} rays)"
-
-
-def _unit(name, vector):
-    return _unit_directions(_vectors(name, vector), name)[0]
-
-
-def _check_half_angle(half_angle):
-    try:
-        value = float(half_angle)
-    except (TypeError, ValueError):
-        raise ValueError(f"half_angle must be a number of radians, got {half_angle!r}") from None
-    if not (np.isfinite(value) and 0.0 <= value < np.pi / 2):
-        raise ValueError(f"half_angle must be in [0, pi/2) radians, got {half_angle!r}")
-    return value
 
 
 def _frame(axis):
@@ -132,8 +110,8 @@ def cone_directions(axis, half_angle, n_rays, pattern="fibonacci"):
     directions : numpy.ndarray, shape (n, 3)
     angles : numpy.ndarray, shape (n,)
     """
-    axis = _unit("axis", axis)
-    half_angle = _check_half_angle(half_angle)
+    axis = validate.unit("axis", axis)
+    half_angle = validate.half_angle(half_angle)
     if pattern not in PATTERNS:
         raise ValueError(f"pattern must be one of {PATTERNS}, got {pattern!r}")
     if isinstance(n_rays, bool) or not isinstance(n_rays, (int, np.integer)) or n_rays < 1:
@@ -176,10 +154,10 @@ def default_ray_count(grid, origin, half_angle):
     poles cells are narrower in theta than ``s``, so thin polar cells can
     still fall between rays.
     """
-    half_angle = _check_half_angle(half_angle)
+    half_angle = validate.half_angle(half_angle)
     if half_angle == 0.0:
         return 1
-    origin = _check_origin_size("origin", _vectors("origin", origin))[0]
+    origin = validate.origin_size("origin", validate.vectors("origin", origin))[0]
     cell_angle = min(np.min(np.diff(grid.theta_edges)), np.min(np.diff(grid.phi_edges)))
     cell_width = grid.rho_max * cell_angle
     reach = np.linalg.norm(origin) + grid.rho_max
@@ -206,8 +184,9 @@ def _ray_weights(angles, half_angle, weighting, sigma):
     return weights / weights.sum()
 
 
-def _sample(grid, origin, direction, half_angle, n_rays, pattern, weighting, sigma):
-    half_angle = _check_half_angle(half_angle)
+def sample_rays(grid, origin, direction, half_angle, n_rays, pattern, weighting, sigma):
+    """Directions and weights of a cone's rays (``n_rays=None``: the default count)."""
+    half_angle = validate.half_angle(half_angle)
     if n_rays is None:
         n_rays = default_ray_count(grid, origin, half_angle)
     directions, angles = cone_directions(direction, half_angle, n_rays, pattern)
@@ -220,7 +199,7 @@ def _chunk_starts(n_rays):
     return np.linspace(0, n_rays, chunks + 1).astype(np.int64)
 
 
-def _aggregate(grid, offsets, cells, t_enter, axis, weights, per_segment=False, normalise=True,
+def aggregate_cells(grid, offsets, cells, t_enter, axis, weights, per_segment=False, normalise=True,
                chunks=None):
     """Weighted cells of a cone's traces, ordered by first reach.
 
@@ -250,32 +229,14 @@ def _aggregate(grid, offsets, cells, t_enter, axis, weights, per_segment=False, 
     return cells[order], weights, t_first[order]
 
 
-def _trace_rays(grid, origin, directions):
+def trace_given_rays(grid, origin, directions):
     """Trace cone rays exactly as given, on all threads.
 
     They are already unit: renormalising could move them by an ulp.
     ``origin`` is (3,) or one per ray.
     """
     origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
-    return _run_exact(grid, origins, directions, np.full(directions.shape[0], np.inf), True)
-
-
-_scratch = threading.local()
-
-
-def _scratch_segments(length):
-    """Segment arrays reused by this Python thread's cone traces, grown as needed.
-
-    A cone's segments are read once, by the aggregation; faulting in fresh
-    pages for them each call took longer than tracing into them (1.0 of 2.0
-    ms for a 1,000-ray cone, measured). Per Python thread, so concurrent
-    calls never share them.
-    """
-    held = getattr(_scratch, "segments", None)
-    if held is None or held[0].shape[0] < length:
-        held = _segment_arrays(length + length // 4)
-        _scratch.segments = held
-    return held
+    return batching.run_exact(grid, origins, directions, np.full(directions.shape[0], np.inf), True)
 
 
 def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibonacci",
@@ -314,24 +275,25 @@ def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibona
         infinite origin or direction; zero direction; bad ``n_rays``,
         ``pattern``, ``weighting`` or ``sigma``; ``grid`` not a Grid.
     """
-    _check_grid(grid)
-    origin = _check_origin_size("origin", _vectors("origin", origin))[0]
-    directions, ray_weights = _sample(grid, origin, direction, half_angle, n_rays, pattern,
+    validate.grid(grid)
+    origin = validate.origin_size("origin", validate.vectors("origin", origin))[0]
+    directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
     n_rays = directions.shape[0]
     origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
     no_limit = np.full(n_rays, np.inf)
-    traced = trace_regions(grid, origins, directions, no_limit, grid.kernel_args(),
-                           len(_chunk_starts(n_rays)) - 1, _scratch_segments)
+    traced = batching.trace_regions(grid, origins, directions, no_limit, grid.kernel_args(),
+                           len(_chunk_starts(n_rays)) - 1, batching.scratch_segments)
     if traced is None:  # a chunk outgrew its estimated room
-        traces = _trace_rays(grid, origin, directions)
-        cells, weights, t_first = _aggregate(grid, traces.offsets, traces.cells, traces.t_enter,
-                                             directions[0], ray_weights)
+        traces = trace_given_rays(grid, origin, directions)
+        cells, weights, t_first = aggregate_cells(grid, traces.offsets, traces.cells,
+                                                  traces.t_enter, directions[0], ray_weights)
     else:
         traces = None
         starts, regions, _, offsets, segment_cells, t_enter, _ = traced
-        cells, weights, t_first = _aggregate(grid, offsets, segment_cells, t_enter, directions[0],
-                                             ray_weights, chunks=(starts, regions))
+        cells, weights, t_first = aggregate_cells(grid, offsets, segment_cells, t_enter,
+                                                  directions[0], ray_weights,
+                                                  chunks=(starts, regions))
     return ConeTrace(cells, weights, t_first, directions, ray_weights, origin, grid, traces)
 
 
@@ -351,25 +313,25 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     -------
     list of ConeTrace
     """
-    _check_grid(grid)
-    origins = _vectors("origins", origins)
-    directions = _vectors("directions", directions, rows=origins.shape[0])
+    validate.grid(grid)
+    origins = validate.vectors("origins", origins)
+    directions = validate.vectors("directions", directions, rows=origins.shape[0])
     half_angles = np.broadcast_to(np.asarray(half_angles, dtype=np.float64), origins.shape[:1])
     samples = [
-        _sample(grid, origin, direction, angle, n_rays, pattern, weighting, sigma)
+        sample_rays(grid, origin, direction, angle, n_rays, pattern, weighting, sigma)
         for origin, direction, angle in zip(origins, directions, half_angles)
     ]
     counts = [len(sample[0]) for sample in samples]
     all_origins = np.repeat(origins, counts, axis=0)
     all_directions = np.concatenate([sample[0] for sample in samples])
-    traces = _trace_rays(grid, all_origins, all_directions)
+    traces = trace_given_rays(grid, all_origins, all_directions)
     results = []
     first = 0
     for (cone_directions_, ray_weights), count in zip(samples, counts):
         lo, hi = traces.offsets[first], traces.offsets[first + count]
         own = Traces(traces.offsets[first:first + count + 1] - lo, traces.cells[lo:hi],
                      traces.t_enter[lo:hi], traces.t_exit[lo:hi])
-        cells, weights, t_first = _aggregate(grid, own.offsets, own.cells, own.t_enter,
+        cells, weights, t_first = aggregate_cells(grid, own.offsets, own.cells, own.t_enter,
                                              cone_directions_[0], ray_weights)
         results.append(ConeTrace(cells, weights, t_first, cone_directions_, ray_weights,
                                  origins[len(results)], grid, own))

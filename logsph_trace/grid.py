@@ -1,86 +1,12 @@
 """The bounded log-spherical partition of the paper's Eq. 1-3 (conventions: docs/geometry.md)."""
 
-import math
-
 import numpy as np
 
+from . import _validate as validate
 from .kernels import locate as _locate
 
 SPACINGS = ("log", "paper", "uniform")
 _SPACING_KIND = {"log": _locate.LOG, "paper": _locate.PAPER, "uniform": _locate.UNIFORM}
-_FULL_TURN_TOL = 1e-12
-_SQRT_MAX = math.sqrt(np.finfo(np.float64).max)  # ~1.34e154: larger numbers square to inf
-
-
-def _as_count(name, value):
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    if value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    return int(value)
-
-
-def _as_finite(name, value):
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a finite number, got {value!r}") from None
-    if not math.isfinite(number):
-        raise ValueError(f"{name} must be a finite number, got {value!r}")
-    return number
-
-
-def _as_range(name, value):
-    try:
-        low, high = value
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a pair (low, high), got {value!r}") from None
-    low = _as_finite(f"{name}[0]", low)
-    high = _as_finite(f"{name}[1]", high)
-    if not low < high:
-        raise ValueError(f"{name} must be increasing (low < high), got {value!r}")
-    return low, high
-
-
-def _check_edges(name, edges):
-    try:
-        array = np.array(edges, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a 1-D array of numbers, got {edges!r}") from None
-    if array.ndim != 1 or array.shape[0] < 2:
-        raise ValueError(f"{name} must be 1-D with at least 2 edges, got shape {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{name} must be finite, got {array!r}")
-    steps = np.diff(array)
-    if not np.all(steps > 0):
-        bad = int(np.argmin(steps))
-        raise ValueError(
-            f"{name} must be strictly increasing; edges[{bad}]={float(array[bad])!r} "
-            f">= edges[{bad + 1}]={float(array[bad + 1])!r}"
-        )
-    return array
-
-
-def _check_squares(name, rho_edges):
-    """Reject a rho_max whose square (the kernels compare squared distances) overflows."""
-    if not rho_edges[-1] <= _SQRT_MAX:
-        raise ValueError(
-            f"{name} must be below about 1e154 so that its square is finite, "
-            f"got {float(rho_edges[-1])!r}"
-        )
-
-
-def _check_theta_width(low, high, name):
-    width = high - low
-    if width > 2 * np.pi + _FULL_TURN_TOL:
-        raise ValueError(f"{name} spans {width!r} rad; an azimuth range is at most 2*pi")
-    return abs(width - 2 * np.pi) <= _FULL_TURN_TOL
-
-
-def _check_phi(low, high, name):
-    half = np.pi / 2
-    if low < -half - _FULL_TURN_TOL or high > half + _FULL_TURN_TOL:
-        raise ValueError(f"{name} must lie in [-pi/2, pi/2], got ({low!r}, {high!r})")
 
 
 def rho_edges_for(rho_min, rho_max, n_rho, spacing="log"):
@@ -102,9 +28,9 @@ def rho_edges_for(rho_min, rho_max, n_rho, spacing="log"):
     -------
     numpy.ndarray, shape (n_rho + 1,), float64
     """
-    rho_min = _as_finite("rho_min", rho_min)
-    rho_max = _as_finite("rho_max", rho_max)
-    n_rho = _as_count("n_rho", n_rho)
+    rho_min = validate.finite("rho_min", rho_min)
+    rho_max = validate.finite("rho_max", rho_max)
+    n_rho = validate.count("n_rho", n_rho)
     if spacing not in SPACINGS:
         raise ValueError(f"spacing must be one of {SPACINGS}, got {spacing!r}")
     if rho_min < 0:
@@ -129,7 +55,7 @@ def rho_edges_for(rho_min, rho_max, n_rho, spacing="log"):
         edges = np.linspace(rho_min, rho_max, n_rho + 1)
     edges[0] = rho_min
     edges[-1] = rho_max
-    _check_squares("rho_max", edges)
+    validate.squares_finite("rho_max", edges)
     if not np.all(np.diff(edges) > 0):
         raise ValueError(f"n_rho={n_rho} is too fine for rho in ({rho_min!r}, {rho_max!r})")
     return edges
@@ -173,20 +99,20 @@ class Grid:
                  theta_range=(-np.pi, np.pi), phi_range=(-np.pi / 2, np.pi / 2),
                  spacing="log"):
         rho_edges = rho_edges_for(rho_min, rho_max, n_rho, spacing)
-        n_theta = _as_count("n_theta", n_theta)
-        n_phi = _as_count("n_phi", n_phi)
-        theta_min, theta_max = _as_range("theta_range", theta_range)
-        phi_min, phi_max = _as_range("phi_range", phi_range)
-        if _check_theta_width(theta_min, theta_max, "theta_range"):
+        n_theta = validate.count("n_theta", n_theta)
+        n_phi = validate.count("n_phi", n_phi)
+        theta_min, theta_max = validate.pair_range("theta_range", theta_range)
+        phi_min, phi_max = validate.pair_range("phi_range", phi_range)
+        if validate.theta_width(theta_min, theta_max, "theta_range"):
             theta_max = theta_min + 2 * np.pi
-        _check_phi(phi_min, phi_max, "phi_range")
+        validate.phi_range(phi_min, phi_max, "phi_range")
         theta_edges = np.linspace(theta_min, theta_max, n_theta + 1)
         phi_edges = np.linspace(max(phi_min, -np.pi / 2), min(phi_max, np.pi / 2), n_phi + 1)
         self._setup(rho_edges, theta_edges, phi_edges, spacing,
                     _SPACING_KIND[spacing], _locate.UNIFORM, _locate.UNIFORM)
 
     @classmethod
-    def from_edges(cls, rho_edges, theta_edges, phi_edges):
+    def from_edges(cls, rho_edges, theta_edges, phi_edges, spacing=None):
         """Build a grid from any strictly increasing edges (radians for the angles).
 
         The paper's remark that the method generalises "by substituting the
@@ -194,20 +120,36 @@ class Grid:
         ``rho_edges[0]`` must be ``>= 0``; ``theta_edges`` may span at most ``2*pi``
         (exactly ``2*pi`` is the full circle with a seam at ``theta_edges[0]``);
         ``phi_edges`` must lie in ``[-pi/2, pi/2]``.
+
+        ``spacing`` (``"log"``, ``"paper"`` or ``"uniform"``) restores a grid
+        made with that radial spacing, such as a saved map's, with its
+        closed-form lookups: the radial edges must then be exactly that
+        spacing's, and evenly spaced angular edges get the closed form too.
         """
-        rho = _check_edges("rho_edges", rho_edges)
-        theta = _check_edges("theta_edges", theta_edges)
-        phi = _check_edges("phi_edges", phi_edges)
+        rho = validate.edges("rho_edges", rho_edges)
+        theta = validate.edges("theta_edges", theta_edges)
+        phi = validate.edges("phi_edges", phi_edges)
         if rho[0] < 0:
             raise ValueError(f"rho_edges[0] must be >= 0, got {rho[0]!r}")
-        _check_squares("rho_edges", rho)
-        if _check_theta_width(theta[0], theta[-1], "theta_edges"):
+        validate.squares_finite("rho_edges", rho)
+        if validate.theta_width(theta[0], theta[-1], "theta_edges"):
             theta[-1] = theta[0] + 2 * np.pi
-        _check_phi(phi[0], phi[-1], "phi_edges")
+        validate.phi_range(phi[0], phi[-1], "phi_edges")
         phi = np.clip(phi, -np.pi / 2, np.pi / 2)
+        kinds = [_locate.EXPLICIT] * 3
+        if spacing is None or spacing == "explicit":
+            spacing = "explicit"
+        else:
+            if spacing not in SPACINGS:
+                raise ValueError(f"spacing must be one of {SPACINGS} or None, got {spacing!r}")
+            if not np.array_equal(rho, rho_edges_for(rho[0], rho[-1], rho.size - 1, spacing)):
+                raise ValueError(f"rho_edges are not the edges of {spacing!r} spacing")
+            kinds[0] = _SPACING_KIND[spacing]
+            for axis, edges in ((1, theta), (2, phi)):
+                if np.array_equal(edges, np.linspace(edges[0], edges[-1], edges.size)):
+                    kinds[axis] = _locate.UNIFORM
         grid = cls.__new__(cls)
-        grid._setup(rho, theta, phi, "explicit",
-                    _locate.EXPLICIT, _locate.EXPLICIT, _locate.EXPLICIT)
+        grid._setup(rho, theta, phi, spacing, *kinds)
         return grid
 
     @classmethod
@@ -219,11 +161,11 @@ class Grid:
         cells (section 2.1: "discretised into cells by defining the increment in
         the angles"). The default radial spacing is the paper's Eq. 3.
         """
-        d_theta = _as_finite("d_theta", d_theta)
-        d_phi = _as_finite("d_phi", d_phi)
+        d_theta = validate.finite("d_theta", d_theta)
+        d_phi = validate.finite("d_phi", d_phi)
         counts = []
         for name, step, span in (("d_theta", d_theta, theta_range), ("d_phi", d_phi, phi_range)):
-            low, high = _as_range(name.replace("d_", "") + "_range", span)
+            low, high = validate.pair_range(name.replace("d_", "") + "_range", span)
             if step <= 0:
                 raise ValueError(f"{name} must be > 0 degrees, got {step!r}")
             cells = (high - low) / step
@@ -337,7 +279,7 @@ class Grid:
         numpy.ndarray, int32, shape (M, 3) (or (3,))
             ``(i, j, k)`` per point; ``-1`` in all three columns outside the region.
         """
-        array, single = _points("points", points)
+        array, single = validate.points("points", points)
         cells = _locate.cells_of_points(
             array, self.rho_edges, self.rho_kind, self.theta_edges, self.theta_kind,
             self.phi_edges, self.phi_kind,
@@ -389,25 +331,12 @@ class Grid:
         return centers[0] if np.asarray(cells).ndim == 1 else centers
 
 
-def _points(name, points):
-    array = np.asarray(points, dtype=np.float64)
-    single = array.ndim == 1
-    if single:
-        array = array[None, :]
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (M, 3) or (3,), got {np.shape(points)}")
-    if not np.all(np.isfinite(array)):
-        row = int(np.argmax(~np.all(np.isfinite(array), axis=1)))
-        raise ValueError(f"{name} must be finite; row {row} is {array[row].tolist()}")
-    return np.ascontiguousarray(array), single
-
-
 def cartesian_to_spherical(points):
     """(M, 3) Cartesian to (M, 3) ``(rho, theta, phi)``.
 
     ``theta`` lies in (-pi, pi] and ``phi`` in [-pi/2, pi/2].
     """
-    array, single = _points("points", points)
+    array, single = validate.points("points", points)
     x, y, z = array[:, 0], array[:, 1], array[:, 2]
     out = np.stack([
         np.sqrt(x * x + y * y + z * z),
@@ -419,7 +348,7 @@ def cartesian_to_spherical(points):
 
 def spherical_to_cartesian(spherical):
     """(M, 3) ``(rho, theta, phi)`` -> (M, 3) Cartesian (x, y, z) in this package's frame."""
-    array, single = _points("spherical", spherical)
+    array, single = validate.points("spherical", spherical)
     rho, theta, phi = array[:, 0], array[:, 1], array[:, 2]
     out = np.stack([
         rho * np.cos(phi) * np.sin(theta),
@@ -442,6 +371,6 @@ def from_ros(vectors):
     ROS left (+y) becomes +x (theta = +pi/2): a proper rotation (determinant +1), so
     handedness is kept.
     """
-    array, single = _points("vectors", vectors)
+    array, single = validate.points("vectors", vectors)
     out = array @ ROS_TO_GRID.T
     return out[0] if single else out

@@ -16,24 +16,15 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from .api import _check_grid, _check_origin_size, _row_norms, _vectors, trace_many
-from .cone import _aggregate, _sample
+from . import _validate as validate
+from .cone import aggregate_cells, sample_rays
 from .grid import Grid
 from .kernels import occupancy as _kernels
+from .trace import trace_many
 
 
 def _logit(p):
     return float(np.log(p / (1.0 - p)))
-
-
-def _probability(name, value, low=0.0, high=1.0):
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a probability, got {value!r}") from None
-    if not (low < number < high):
-        raise ValueError(f"{name} must be in ({low:g}, {high:g}), got {value!r}")
-    return number
 
 
 class OccupancyGrid:
@@ -57,12 +48,12 @@ class OccupancyGrid:
     """
 
     def __init__(self, grid, p_hit=0.7, p_miss=0.4, p_min=0.1192, p_max=0.971, log_odds=None):
-        _check_grid(grid)
+        validate.grid(grid)
         self.grid = grid
-        self.p_hit = _probability("p_hit", p_hit, 0.5, 1.0)
-        self.p_miss = _probability("p_miss", p_miss, 0.0, 0.5)
-        self.p_min = _probability("p_min", p_min, 0.0, 0.5)
-        self.p_max = _probability("p_max", p_max, 0.5, 1.0)
+        self.p_hit = validate.probability("p_hit", p_hit, 0.5, 1.0)
+        self.p_miss = validate.probability("p_miss", p_miss, 0.0, 0.5)
+        self.p_min = validate.probability("p_min", p_min, 0.0, 0.5)
+        self.p_max = validate.probability("p_max", p_max, 0.5, 1.0)
         self.log_odds = np.zeros(grid.shape, dtype=np.float32)
         if log_odds is not None:
             log_odds = np.asarray(log_odds, dtype=np.float32)
@@ -85,7 +76,7 @@ class OccupancyGrid:
 
     def occupied(self, threshold=0.6):
         """Cells whose probability exceeds ``threshold``, shape (u, 3)."""
-        threshold = _probability("threshold", threshold)
+        threshold = validate.probability("threshold", threshold)
         return np.argwhere(self.log_odds > _logit(threshold)).astype(np.int32)
 
     def integrate(self, points, sensor_origin, max_range=None):
@@ -105,10 +96,11 @@ class OccupancyGrid:
         -------
         self
         """
-        points = _vectors("points", points)
-        origin = _check_origin_size("sensor_origin", _vectors("sensor_origin", sensor_origin))[0]
+        points = validate.vectors("points", points)
+        origin = validate.vectors("sensor_origin", sensor_origin)
+        origin = validate.origin_size("sensor_origin", origin)[0]
         offsets = points - origin if np.any(origin) else points
-        distances = _row_norms(offsets)
+        distances = validate.row_norms(offsets)
         if not np.all(distances > 0.0):  # a point at the sensor is no ray
             keep = distances > 0.0
             offsets, distances = offsets[keep], distances[keep]
@@ -176,10 +168,9 @@ class OccupancyGrid:
     def load(cls, path):
         """Read a map written by :meth:`save`."""
         with np.load(Path(path)) as data:
-            grid = Grid.__new__(Grid)
-            kinds = [int(k) for k in data["kinds"]]
-            grid._setup(data["rho_edges"].copy(), data["theta_edges"].copy(),
-                        data["phi_edges"].copy(), str(data["spacing"]), *kinds)
+            # Through the constructor, so a saved grid is validated like a new one.
+            grid = Grid.from_edges(data["rho_edges"], data["theta_edges"], data["phi_edges"],
+                                   spacing=str(data["spacing"]))
             return cls(grid, *[float(p) for p in data["probabilities"]], log_odds=data["log_odds"])
 
 
@@ -210,7 +201,7 @@ def gaze_targets(occupancy, origin, direction, threshold=0.6):
         at which the gaze first enters each, in order of distance.
     """
     _check_occupancy(occupancy)
-    threshold = _probability("threshold", threshold)
+    threshold = validate.probability("threshold", threshold)
     ray = trace_many(occupancy.grid, origin, direction, parallel=False)[0]
     if len(ray) == 0:
         return GazeTargets(ray.cells, np.empty(0), np.empty(0))
@@ -267,8 +258,8 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
     min_distance = float(min_distance)
     if not (np.isfinite(min_distance) and min_distance >= 0.0):
         raise ValueError(f"min_distance must be >= 0, got {min_distance!r}")
-    origin = _check_origin_size("origin", _vectors("origin", origin))[0]
-    directions, ray_weights = _sample(grid, origin, direction, half_angle, n_rays, pattern,
+    origin = validate.origin_size("origin", validate.vectors("origin", origin))[0]
+    directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
     traces = trace_many(grid, np.broadcast_to(origin, directions.shape), directions)
     free_below = float(free_below)
@@ -278,7 +269,7 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
         traces.offsets, traces.cells, traces.t_exit, occupancy.log_odds.reshape(-1),
         grid.n_theta, grid.n_phi, ray_weights, min_distance, unknown, free_below,
     )
-    cells, values, t_first = _aggregate(grid, traces.offsets, traces.cells, traces.t_enter,
+    cells, values, t_first = aggregate_cells(grid, traces.offsets, traces.cells, traces.t_enter,
                                         directions[0], segment_values, per_segment=True,
                                         normalise=False)
     if dense:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .api import _vectors
+from . import _validate as validate
 
 
 @dataclass(frozen=True)
@@ -50,8 +50,8 @@ class Scene:
         The slab test per box, vectorised over rays; ``directions`` need not be unit
         length (distances are in units of the direction's length).
         """
-        origin = _vectors("origin", origin)[0]
-        directions = _vectors("directions", directions)
+        origin = validate.vectors("origin", origin)[0]
+        directions = validate.vectors("directions", directions)
         with np.errstate(divide="ignore", invalid="ignore"):
             t_low = (self.low[None, :, :] - origin) / directions[:, None, :]
             t_high = (self.high[None, :, :] - origin) / directions[:, None, :]
@@ -90,10 +90,10 @@ class Scene:
         depth : numpy.ndarray, shape (height, width)
             Distance per pixel along its ray (inf where nothing is hit).
         """
-        sensor = _vectors("sensor", sensor)[0]
-        forward = _vectors("forward", forward)[0]
+        sensor = validate.vectors("sensor", sensor)[0]
+        forward = validate.vectors("forward", forward)[0]
         forward = forward / np.linalg.norm(forward)
-        up = _vectors("up", up)[0]
+        up = validate.vectors("up", up)[0]
         right = np.cross(up, forward)
         right /= np.linalg.norm(right)
         up = np.cross(forward, right)

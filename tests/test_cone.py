@@ -112,7 +112,7 @@ def test_a_cone_is_the_same_on_every_path(monkeypatch):
     # one thread, the packed fallback and trace_cones must agree bit for bit.
     import numba
 
-    import logsph_trace.cone as cone_module
+    from logsph_trace import _batching
 
     args = (GRID, ORIGIN, GAZE, np.radians(8))
     regions = trace_cone(*args, n_rays=700)
@@ -123,7 +123,7 @@ def test_a_cone_is_the_same_on_every_path(monkeypatch):
     finally:
         numba.set_num_threads(before)
     _same_cone(trace_cones(GRID, [ORIGIN], [GAZE], np.radians(8), n_rays=700)[0], regions)
-    monkeypatch.setattr(cone_module, "trace_regions", lambda *a: None)  # a chunk did not fit
+    monkeypatch.setattr(_batching, "trace_regions", lambda *a: None)  # a chunk did not fit
     fallback = trace_cone(*args, n_rays=700)
     _same_cone(fallback, regions)
     assert fallback._traces is not None and regions._traces is None

@@ -150,7 +150,7 @@ def test_property_any_ray_matches_oracle(name, origin, direction):
 def test_every_parallel_path_equals_the_serial_one():
     # Chunked appending (many rays), its fallback when a chunk outgrows the room
     # estimated from the first rays, and the bounded three-pass pipeline.
-    from logsph_trace import api as trace_module
+    from logsph_trace import _batching, _validate
 
     grid = GRIDS["log_full"]()
     rng = np.random.default_rng(41)
@@ -159,14 +159,14 @@ def test_every_parallel_path_equals_the_serial_one():
     origins[:256] = [0.0, 0.0, 100.0]
     directions[:256] = [0.0, 0.0, 1.0]
     serial = lt.trace_many(grid, origins, directions, parallel=False)
-    o, d = trace_module._rays(origins, directions)
+    o, d = _validate.rays(origins, directions)
     args = grid.kernel_args()
     far = np.full(len(o), np.inf)
-    assert trace_module._run_exact_chunks(grid, o, d, far, args, threads=2) is None  # overflow
+    assert _batching.run_exact_chunks(grid, o, d, far, args, threads=2) is None  # overflow
     results = [
         lt.trace_many(grid, origins, directions, parallel=True),
-        trace_module._run_exact_chunks(grid, o[::-1].copy(), d[::-1].copy(), far, args, threads=3),
-        trace_module._run_exact_bounded(grid, o, d, far, args),
+        _batching.run_exact_chunks(grid, o[::-1].copy(), d[::-1].copy(), far, args, threads=3),
+        _batching.run_exact_bounded(grid, o, d, far, args),
     ]
     reversed_serial = lt.trace_many(grid, origins[::-1], directions[::-1], parallel=False)
     for result, want in zip(results, [serial, reversed_serial, serial]):

@@ -193,3 +193,17 @@ def test_fixation_probability_equals_the_numpy_reference(half_angle, unknown, fr
     assert set(map(tuple, np.argwhere(got > 0).tolist())) == {c for c, v in want.items() if v > 0}
     for cell, value in want.items():
         assert got[cell] == pytest.approx(value, rel=1e-12, abs=1e-15)
+
+
+def test_load_restores_the_grid_through_its_constructor(tmp_path):
+    for grid in (GRID, lt.Grid(1.0, 30.0, 12, 36, 18, spacing="paper"),
+                 lt.Grid(0.5, 6.0, 20, 24, 12, theta_range=(-1.0, 2.5), spacing="uniform"),
+                 lt.Grid.from_edges([0.5, 1.0, 3.0], [0.0, 0.4, 1.1], [-0.3, 0.2])):
+        path = tmp_path / "map.npz"
+        OccupancyGrid(grid).save(path)
+        loaded = OccupancyGrid.load(path).grid
+        assert loaded == grid and loaded.spacing == grid.spacing
+        assert (loaded.rho_kind, loaded.theta_kind, loaded.phi_kind) == (
+            grid.rho_kind, grid.theta_kind, grid.phi_kind)
+    with pytest.raises(ValueError, match="not the edges of 'log' spacing"):
+        lt.Grid.from_edges([0.5, 1.0, 3.0], [0.0, 1.0], [0.0, 1.0], spacing="log")

@@ -35,17 +35,17 @@ def test_t_max_cuts_the_full_trace(grid):
 
 
 def test_t_max_on_the_parallel_paths():
-    from logsph_trace import api
+    from logsph_trace import _batching, _validate
 
     grid = GRIDS["paper_dm"]()
     rng = np.random.default_rng(52)
     origins, directions = random_rays(rng, grid, 5000)
     t_max = rng.uniform(0.0, 100.0, 5000)
     serial = lt.trace_many(grid, origins, directions, t_max=t_max, parallel=False)
-    o, d = api._rays(origins, directions)
+    o, d = _validate.rays(origins, directions)
     for result in (
         lt.trace_many(grid, origins, directions, t_max=t_max),
-        api._run_exact_bounded(grid, o, d, t_max, grid.kernel_args()),
+        _batching.run_exact_bounded(grid, o, d, t_max, grid.kernel_args()),
     ):
         np.testing.assert_array_equal(result.offsets, serial.offsets)
         np.testing.assert_array_equal(result.t_exit, serial.t_exit)

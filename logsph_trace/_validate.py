@@ -1,0 +1,247 @@
+"""Every input check of the public API, in one place and one style.
+
+Each check takes the argument's name and value, returns the value in the form
+the kernels need (contiguous float64 arrays, Python numbers), and raises a
+``ValueError`` whose message names the argument, the bad row where there is
+one, and the value -- before any kernel runs.
+"""
+
+import math
+
+import numpy as np
+
+_FULL_TURN_TOL = 1e-12
+
+
+_SQRT_MAX = math.sqrt(np.finfo(np.float64).max)  # ~1.34e154: larger numbers square to inf
+
+
+def count(name, value):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    if value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def finite(name, value):
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a finite number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    return number
+
+
+def pair_range(name, value):
+    try:
+        low, high = value
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair (low, high), got {value!r}") from None
+    low = finite(f"{name}[0]", low)
+    high = finite(f"{name}[1]", high)
+    if not low < high:
+        raise ValueError(f"{name} must be increasing (low < high), got {value!r}")
+    return low, high
+
+
+def edges(name, edges):
+    try:
+        array = np.array(edges, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a 1-D array of numbers, got {edges!r}") from None
+    if array.ndim != 1 or array.shape[0] < 2:
+        raise ValueError(f"{name} must be 1-D with at least 2 edges, got shape {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} must be finite, got {array!r}")
+    steps = np.diff(array)
+    if not np.all(steps > 0):
+        bad = int(np.argmin(steps))
+        raise ValueError(
+            f"{name} must be strictly increasing; edges[{bad}]={float(array[bad])!r} "
+            f">= edges[{bad + 1}]={float(array[bad + 1])!r}"
+        )
+    return array
+
+
+def squares_finite(name, rho_edges):
+    """Reject a rho_max whose square (the kernels compare squared distances) overflows."""
+    if not rho_edges[-1] <= _SQRT_MAX:
+        raise ValueError(
+            f"{name} must be below about 1e154 so that its square is finite, "
+            f"got {float(rho_edges[-1])!r}"
+        )
+
+
+def theta_width(low, high, name):
+    width = high - low
+    if width > 2 * np.pi + _FULL_TURN_TOL:
+        raise ValueError(f"{name} spans {width!r} rad; an azimuth range is at most 2*pi")
+    return abs(width - 2 * np.pi) <= _FULL_TURN_TOL
+
+
+def phi_range(low, high, name):
+    half = np.pi / 2
+    if low < -half - _FULL_TURN_TOL or high > half + _FULL_TURN_TOL:
+        raise ValueError(f"{name} must lie in [-pi/2, pi/2], got ({low!r}, {high!r})")
+
+
+def points(name, points):
+    array = np.asarray(points, dtype=np.float64)
+    single = array.ndim == 1
+    if single:
+        array = array[None, :]
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (M, 3) or (3,), got {np.shape(points)}")
+    if not np.all(np.isfinite(array)):
+        row = int(np.argmax(~np.all(np.isfinite(array), axis=1)))
+        raise ValueError(f"{name} must be finite; row {row} is {array[row].tolist()}")
+    return np.ascontiguousarray(array), single
+
+
+def grid(grid):
+    """``grid`` must be a :class:`~logsph_trace.Grid`."""
+    from .grid import Grid  # grid.py validates with this module: import when called
+
+    if not isinstance(grid, Grid):
+        raise ValueError(f"grid must be a logsph_trace.Grid, got {type(grid).__name__}")
+
+
+def choice(name, value, options):
+    """``value`` must be one of ``options``."""
+    if value not in options:
+        raise ValueError(f"{name} must be one of {options}, got {value!r}")
+    return value
+
+
+def vectors(name, value, rows=None):
+    """Coerce to a C-contiguous (m, 3) float64 array; reject NaN and inf."""
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numeric, got {value!r}") from None
+    if array.ndim == 1:
+        array = array[None, :]
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (m, 3) or (3,), got {np.shape(value)}")
+    if rows is not None and array.shape[0] != rows:
+        raise ValueError(f"{name} has {array.shape[0]} rows but origins has {rows}")
+    finite = np.all(np.isfinite(array), axis=1)
+    if not np.all(finite):
+        row = int(np.argmin(finite))
+        raise ValueError(f"{name} must be finite; row {row} is {array[row].tolist()}")
+    return np.ascontiguousarray(array)
+
+
+# A row's squared length must lie in this range to be summed as it is: beyond
+# it a component of ~1e154 overflows (a direction of 1e200 became (0, 0, 0))
+# or one of ~1e-154 underflows and loses its digits. Such rows, and only they,
+# are scaled by their largest component first.
+_SQUARES_LOW, _SQUARES_HIGH = 1e-300, 1e300
+
+
+def row_norms(vectors):
+    """Euclidean length of each row of an (m, 3) array, without overflow or underflow.
+
+    Ordinary rows cost one pass and are bit-identical to ``sqrt(x^2 + y^2 + z^2)``.
+    """
+    squares = np.einsum("ij,ij->i", vectors, vectors)
+    norms = np.sqrt(squares)
+    extreme = ~((squares >= _SQUARES_LOW) & (squares <= _SQUARES_HIGH))
+    if np.any(extreme):
+        rows = vectors[extreme]
+        scale = np.max(np.abs(rows), axis=1)
+        scaled = rows / np.where(scale > 0.0, scale, 1.0)[:, None]
+        norms[extreme] = scale * np.sqrt(np.einsum("ij,ij->i", scaled, scaled))
+    return norms
+
+
+def unit_directions(directions, name="directions"):
+    """Rows scaled to unit length without overflow or underflow; zero rows are an error."""
+    norms = row_norms(directions)
+    if np.any(norms == 0.0):
+        row = int(np.argmin(norms))
+        raise ValueError(f"{name} must be non-zero; row {row} is {directions[row].tolist()}")
+    return np.ascontiguousarray(directions / norms[:, None])
+
+
+def origin_size(name, origins):
+    """Reject origins beyond ~1.3e154, whose squared length (the kernels use it) overflows."""
+    squares = np.einsum("ij,ij->i", origins, origins)
+    if not np.all(np.isfinite(squares)):
+        row = int(np.argmin(np.isfinite(squares)))
+        raise ValueError(f"{name} must be shorter than about 1e154 (its square must be "
+                         f"finite); row {row} is {origins[row].tolist()}")
+    return origins
+
+
+def rays(origins, directions):
+    if directions is None:
+        array = np.asarray(origins, dtype=np.float64)
+        if array.ndim != 2 or array.shape[1] != 6:
+            raise ValueError(
+                "with directions=None, origins must be one (m, 6) array of origin + direction, "
+                f"got shape {np.shape(origins)}"
+            )
+        origins, directions = array[:, :3], array[:, 3:]
+    origins = origin_size("origins", vectors("origins", origins))
+    directions = vectors("directions", directions, rows=origins.shape[0])
+    return origins, unit_directions(directions)
+
+
+def distances(t_max, n_rays):
+    """``t_max`` as a contiguous (m,) float64 array; ``None`` is no limit."""
+    if t_max is None:
+        return np.full(n_rays, np.inf)
+    try:
+        array = np.asarray(t_max, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"t_max must be a number or an array of numbers, got {t_max!r}") from None
+    if array.ndim == 0:
+        array = np.full(n_rays, float(array))
+    if array.shape != (n_rays,):
+        raise ValueError(f"t_max must be a number or have shape ({n_rays},), got {array.shape}")
+    if np.any(np.isnan(array)) or np.any(array < 0):
+        bad = int(np.argmax(np.isnan(array) | (array < 0)))
+        raise ValueError(f"t_max must be >= 0 (inf allowed); row {bad} is {float(array[bad])!r}")
+    return np.ascontiguousarray(array)
+
+
+def bisect_options(grid, default_t, max_iter):
+    try:
+        default_t = float(default_t)
+    except (TypeError, ValueError):
+        raise ValueError(f"default_t must be a positive number, got {default_t!r}") from None
+    if not (np.isfinite(default_t) and default_t > 0):
+        raise ValueError(f"default_t must be a positive finite number, got {default_t!r}")
+    if max_iter is None:
+        n_rho, n_theta, n_phi = grid.shape
+        max_iter = 64 * (2 * n_rho + n_theta + 2 * n_phi + 4)
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
+    return default_t, int(max_iter)
+
+
+def half_angle(half_angle):
+    try:
+        value = float(half_angle)
+    except (TypeError, ValueError):
+        raise ValueError(f"half_angle must be a number of radians, got {half_angle!r}") from None
+    if not (np.isfinite(value) and 0.0 <= value < np.pi / 2):
+        raise ValueError(f"half_angle must be in [0, pi/2) radians, got {half_angle!r}")
+    return value
+
+
+def unit(name, vector):
+    return unit_directions(vectors(name, vector), name)[0]
+
+
+def probability(name, value, low=0.0, high=1.0):
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a probability, got {value!r}") from None
+    if not (low < number < high):
+        raise ValueError(f"{name} must be in ({low:g}, {high:g}), got {value!r}")
+    return number
