@@ -29,6 +29,21 @@ TWO_PI = 2.0 * np.pi
 BLOCK = 256
 
 
+@jit(inline="always")
+def _last_at_or_below(value, edges):
+    """Index of the last edge <= ``value`` (-1 if none): ``searchsorted(..., "right") - 1``,
+    written out because numba-cuda has no ``np.searchsorted`` in device code."""
+    low = 0
+    high = edges.shape[0]
+    while low < high:  # edges[:low] <= value < edges[high:]
+        middle = (low + high) // 2
+        if edges[middle] <= value:
+            low = middle + 1
+        else:
+            high = middle
+    return low - 1
+
+
 @jit
 def locate(value, edges, kind):
     """Zone of ``value`` among strictly increasing ``edges`` (see module doc)."""
@@ -45,13 +60,13 @@ def locate(value, edges, kind):
     if kind == UNIFORM:
         guess = int((value - lo) / (hi - lo) * n)
     elif kind == LOG:
-        guess = int(np.log(value / lo) / np.log(hi / lo) * n)
+        guess = int(math.log(value / lo) / math.log(hi / lo) * n)
     elif kind == PAPER:
         offset = value - lo
         base = edges[1] - lo
-        guess = int(np.log(offset) / np.log(base)) if offset > 1.0 else 0
+        guess = int(math.log(offset) / math.log(base)) if offset > 1.0 else 0
     else:
-        guess = np.searchsorted(edges, value, side="right") - 1
+        guess = _last_at_or_below(value, edges)
     if guess < 0:
         guess = 0
     if guess > n - 1:
@@ -67,13 +82,13 @@ def locate(value, edges, kind):
 @jit
 def azimuth(x, z):
     """theta = atan2(x, z); ``+ 0.0`` turns -0.0 into +0.0 so the y axis has theta 0."""
-    return np.arctan2(x + 0.0, z + 0.0)
+    return math.atan2(x + 0.0, z + 0.0)
 
 
 @jit
 def elevation(x, y, z):
     """phi = atan2(y, sqrt(x^2 + z^2)), in [-pi/2, pi/2] (docs/geometry.md, not Eq. 7)."""
-    return np.arctan2(y + 0.0, np.sqrt(x * x + z * z))
+    return math.atan2(y + 0.0, math.sqrt(x * x + z * z))
 
 
 @jit
@@ -111,7 +126,7 @@ def phi_zone(x, y, z, phi_edges, phi_kind):
 @jit
 def rho_zone(x, y, z, rho_edges, rho_kind):
     """Radial zone of the point (x, y, z); -1 in the egocentric gap, n_rho beyond rho_max."""
-    return locate(np.sqrt(x * x + y * y + z * z), rho_edges, rho_kind)
+    return locate(math.sqrt(x * x + y * y + z * z), rho_edges, rho_kind)
 
 
 @jit

@@ -299,7 +299,7 @@ def first_occupied(offsets, cells, t_exit, log_odds, n_theta, n_phi, ray_weights
             if log_odds[flat] == 0:
                 p = unknown
             else:
-                p = 1.0 / (1.0 + np.exp(-np.float64(log_odds[flat])))
+                p = 1.0 / (1.0 + math.exp(-np.float64(log_odds[flat])))
                 if p < free_below:
                     p = 0.0
             out[seg] = ray_weights[ray] * p * clear
