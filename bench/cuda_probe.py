@@ -24,19 +24,17 @@ from logsph_trace.kernels import exact
 
 
 @cuda.jit
-def trace_kernel(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
-                 theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind,
-                 times, zones, lookups, cells, t_enter, t_exit, counts, worst, mode):
-    """One thread per ray: the CPU's ``exact.trace_ray``, writing from ``row * worst`` on."""
+def trace_kernel(origins, directions, grid, times, zones, lookups, cells, t_enter, t_exit, counts,
+                 worst, mode):
+    """One thread per ray: the CPU's ``exact.trace_ray``, writing from ``row * worst`` on.
+
+    ``grid`` is the ``GridArrays`` bundle, its arrays on the device.
+    """
     row = cuda.grid(1)
     if row < origins.shape[0]:
-        counts[row] = exact.trace_ray(
-            origins[row, 0], origins[row, 1], origins[row, 2],
-            directions[row, 0], directions[row, 1], directions[row, 2],
-            rho_edges, rho_sq, rho_kind, theta_edges, theta_sin, theta_cos, theta_kind,
-            theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind, np.inf,
-            times[row], zones[row], lookups[row], cells, t_enter, t_exit, row * worst, mode,
-        )
+        counts[row] = exact.trace_ray(origins, directions, row, grid, np.inf, times[row],
+                                      zones[row], lookups[row], cells, t_enter, t_exit,
+                                      row * worst, mode)
 
 
 def probe(n_rays, cells):
@@ -58,8 +56,8 @@ def probe(n_rays, cells):
     args = grid.kernel_args()
     size = int(exact.scratch_size(*grid.shape))
     worst = int(exact.max_segments(*grid.shape))
-    device = [cuda.to_device(np.ascontiguousarray(a)) if isinstance(a, np.ndarray) else a
-              for a in args]
+    device = type(args)(*[cuda.to_device(np.ascontiguousarray(a)) if isinstance(a, np.ndarray)
+                           else a for a in args])
     d_origins = cuda.to_device(origins)
     d_directions = cuda.to_device(directions)
     times = cuda.device_array((n_rays, 3, size), dtype=np.float64)
@@ -72,7 +70,7 @@ def probe(n_rays, cells):
     threads = 128
     blocks = (n_rays + threads - 1) // threads
     start = time.perf_counter()
-    trace_kernel[blocks, threads](d_origins, d_directions, *device, times, zones, lookups,
+    trace_kernel[blocks, threads](d_origins, d_directions, device, times, zones, lookups,
                                   cells_out, enter_out, exit_out, counts, worst, exact.FULL)
     cuda.synchronize()
     first_call = time.perf_counter() - start

@@ -91,7 +91,7 @@ def run_exact_serial(grid, origins, directions, t_max, args):
     used = 0
     row = 0
     while row < n_rays:
-        used, row = _exact.trace_span(row, n_rays, origins, directions, t_max, *args, times, zones,
+        used, row = _exact.trace_span(row, n_rays, origins, directions, t_max, args, times, zones,
                                       lookups, cells, t_enter, t_exit, offsets, used, capacity)
         used, row = int(used), int(row)
         if row < n_rays:
@@ -168,7 +168,7 @@ def trace_regions(grid, origins, directions, t_max, args, chunks, segment_arrays
     cells, t_enter, t_exit = segment_arrays(int(regions[-1]))
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0
-    ends, reached = _exact.trace_chunks(starts, regions, origins, directions, t_max, *args,
+    ends, reached = _exact.trace_chunks(starts, regions, origins, directions, t_max, args,
                                         cells, t_enter, t_exit, offsets)
     if np.any(reached != starts[1:]):
         return None
@@ -177,11 +177,11 @@ def trace_regions(grid, origins, directions, t_max, args, chunks, segment_arrays
 
 def run_exact_bounded(grid, origins, directions, t_max, args):
     """Parallel fallback: bound pass, prefix sum, trace pass, gather (no estimate needed)."""
-    bounds, lookups = _exact.bound_rows(origins, directions, *args)
+    bounds, lookups = _exact.bound_rows(origins, directions, args)
     bound_offsets = csr_offsets(bounds)
     loose = segment_arrays(int(bound_offsets[-1]))
     offsets = csr_offsets(
-        _exact.trace_rows(origins, directions, t_max, *args, lookups, bound_offsets, *loose)
+        _exact.trace_rows(origins, directions, t_max, args, lookups, bound_offsets, *loose)
     )
     segments = segment_arrays(int(offsets[-1]))
     _exact.gather_rows(bound_offsets, offsets, *loose, *segments)

@@ -252,12 +252,12 @@ class Grid:
 
     # ---- arrays the kernels take ------------------------------------------
     def kernel_args(self):
-        """Return the grid as the flat tuple of arrays and scalars the kernels take."""
+        """Return the grid as the kernels take it: one ``GridArrays`` bundle (cached)."""
         cached = getattr(self, "_kernel_args", None)
         if cached is None:
             theta = self.theta_edges
             phi = self.phi_edges
-            cached = (
+            cached = _locate.GridArrays(
                 self.rho_edges, self.rho_edges**2, self.rho_kind,
                 theta, np.sin(theta), np.cos(theta), self.theta_kind, self.theta_full,
                 phi, np.tan(phi) ** 2, np.sign(phi), self.phi_kind,

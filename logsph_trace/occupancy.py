@@ -135,7 +135,7 @@ class OccupancyGrid:
         free = words.view(np.uint8)  # the same memory, a byte per cell
         hits = np.empty(distances.shape[0], dtype=np.int64)
         _kernels.mark_scan(np.ascontiguousarray(origin), directions, distances, is_hit,
-                           *grid.kernel_args(), free, hits)
+                           grid.kernel_args(), free, hits)
         _kernels.apply_scan(self.log_odds.reshape(-1), free, words, hits, grid.n_rho, *update)
         return self
 

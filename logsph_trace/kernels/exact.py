@@ -148,6 +148,13 @@ def scratch_size(n_rho, n_theta, n_phi):
     return max(2 * (n_rho + 1) + 1, n_theta + 2, 2 * (n_phi + 1) + 1) + 2
 
 
+@jit
+def grid_scratch_size(grid):
+    """``scratch_size`` of a grid's ``GridArrays``."""
+    return scratch_size(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
+                        grid.phi_edges.shape[0] - 1)
+
+
 @jit(inline="always")
 def line_geometry(ox, oy, oz, dx, dy, dz):
     """What the families share about the line o + t d (unit d).
@@ -376,14 +383,11 @@ FULL = 2
 
 
 @jit
-def trace_ray(
-    ox, oy, oz, dx, dy, dz,
-    rho_edges, rho_sq, rho_kind,
-    theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
-    phi_edges, phi_tan2, phi_nappe, phi_kind,
-    t_max, times, zones, lookups, cells, t_enter, t_exit, start, mode,
-):
-    """Trace one ray (unit direction) up to distance ``t_max`` (``inf``: to the end).
+def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cells, t_enter,
+              t_exit, start, mode):
+    """Trace ray ``row`` (unit direction) up to distance ``t_max`` (``inf``: to the end).
+
+    ``grid`` is the grid's ``GridArrays``.
 
     ``mode == BOUND``: run phase 1 only, store the ray's zone lookups (the
     atan2 and log calls that are most of the set-up) in ``lookups`` (8 ints) and
@@ -399,6 +403,20 @@ def trace_ray(
     square roots and divisions the CPU can overlap; (3) a three-way merge of
     the sorted lists, emitting a segment whenever the ray is inside.
     """
+    ox = origins[row, 0]
+    oy = origins[row, 1]
+    oz = origins[row, 2]
+    dx = directions[row, 0]
+    dy = directions[row, 1]
+    dz = directions[row, 2]
+    rho_edges = grid.rho_edges
+    rho_sq = grid.rho_sq
+    rho_kind = grid.rho_kind
+    theta_edges = grid.theta_edges
+    theta_kind = grid.theta_kind
+    theta_full = grid.theta_full
+    phi_edges = grid.phi_edges
+    phi_kind = grid.phi_kind
     n_rho = rho_edges.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
@@ -486,9 +504,9 @@ def trace_ray(
     t_final = times[RHO, n_r]
 
     n_t = theta_times(cx, cz, dx, dz, t_closest, jt, jt_limit, th_sigma, th_steps, t_axis,
-                      theta_sin, theta_cos, theta_full, t_final, slack, times, zones)
+                      grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times, zones)
     n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps, ph2_start,
-                    ph2_steps, ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones)
+                    ph2_steps, ph_jump, grid.phi_tan2, grid.phi_nappe, t_final, slack, times, zones)
 
     # ---- phase 3: merge the three sorted lists; emit while inside.
     # Crossings that coincide (a corner where a sphere, a half-plane and a cone
@@ -572,8 +590,7 @@ def trace_ray(
 # appending (``trace_span``). Each ray writes only its own slice or region, so
 # the output does not depend on the number of threads.
 @jit(parallel=True)
-def bound_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
-                theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind):
+def bound_rows(origins, directions, grid):
     """Pass 1: an upper bound on each ray's segments, and its zone lookups for pass 2."""
     n_rays = origins.shape[0]
     bounds = np.empty(n_rays, dtype=np.int64)
@@ -583,46 +600,31 @@ def bound_rows(origins, directions, rho_edges, rho_sq, rho_kind, theta_edges, th
     no_cells = np.empty((0, 3), dtype=np.int32)
     no_t = np.empty(0, dtype=np.float64)
     for row in prange(n_rays):
-        bounds[row] = trace_ray(
-            origins[row, 0], origins[row, 1], origins[row, 2],
-            directions[row, 0], directions[row, 1], directions[row, 2],
-            rho_edges, rho_sq, rho_kind,
-            theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
-            phi_edges, phi_tan2, phi_nappe, phi_kind,
-            np.inf, no_times, no_zones, lookups[row], no_cells, no_t, no_t, 0, BOUND,
-        )
+        bounds[row] = trace_ray(origins, directions, row, grid, np.inf, no_times, no_zones,
+                                lookups[row], no_cells, no_t, no_t, 0, BOUND)
     return bounds, lookups
 
 
 @jit(parallel=True)
-def trace_rows(origins, directions, t_max, rho_edges, rho_sq, rho_kind, theta_edges, theta_sin,
-                theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind,
-                lookups, bound_offsets, cells, t_enter, t_exit):
+def trace_rows(origins, directions, t_max, grid, lookups, bound_offsets, cells, t_enter, t_exit):
     """Pass 2: each ray writes its segments from bound_offsets[r] on; returns the counts."""
     n_rays = origins.shape[0]
     counts = np.zeros(n_rays, dtype=np.int64)
-    size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
+    size = grid_scratch_size(grid)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             if bound_offsets[row + 1] == bound_offsets[row]:
                 continue  # misses the region
-            counts[row] = trace_ray(
-                origins[row, 0], origins[row, 1], origins[row, 2],
-                directions[row, 0], directions[row, 1], directions[row, 2],
-                rho_edges, rho_sq, rho_kind,
-                theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
-                phi_edges, phi_tan2, phi_nappe, phi_kind,
-                t_max[row], times, zones, lookups[row], cells, t_enter, t_exit, bound_offsets[row],
-                TRACE,
-            )
+            counts[row] = trace_ray(origins, directions, row, grid, t_max[row], times, zones,
+                                    lookups[row], cells, t_enter, t_exit, bound_offsets[row], TRACE)
     return counts
 
 
 @jit(parallel=True)
 def gather_rows(bound_offsets, offsets, loose_cells, loose_enter, loose_exit,
-                 cells, t_enter, t_exit):
+                cells, t_enter, t_exit):
     """Pass 3: copy each ray's segments from its bound slice to its final slice."""
     for row in prange(offsets.shape[0] - 1):
         source = bound_offsets[row]
@@ -642,9 +644,8 @@ def max_segments(n_rho, n_theta, n_phi):
 
 
 @jit
-def trace_span(first, last, origins, directions, t_max, rho_edges, rho_sq, rho_kind, theta_edges,
-               theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe,
-               phi_kind, times, zones, lookups, cells, t_enter, t_exit, offsets, used, limit):
+def trace_span(first, last, origins, directions, t_max, grid, times, zones, lookups, cells, t_enter,
+               t_exit, offsets, used, limit):
     """One thread: trace rays first..last-1 in order, appending from segment ``used`` on.
 
     Without threads a ray's final offset is known when it starts (the sum of
@@ -653,33 +654,27 @@ def trace_span(first, last, origins, directions, t_max, rho_edges, rho_sq, rho_k
     that might not fit below ``limit`` (``max_segments`` per ray); returns
     (new ``used``, the first row not traced).
     """
-    worst = max_segments(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
+    worst = max_segments(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
+                         grid.phi_edges.shape[0] - 1)
     for row in range(first, last):
         if limit - used < worst:
             return used, row
-        used += trace_ray(
-            origins[row, 0], origins[row, 1], origins[row, 2],
-            directions[row, 0], directions[row, 1], directions[row, 2],
-            rho_edges, rho_sq, rho_kind,
-            theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
-            phi_edges, phi_tan2, phi_nappe, phi_kind,
-            t_max[row], times, zones, lookups, cells, t_enter, t_exit, used, FULL,
-        )
+        used += trace_ray(origins, directions, row, grid, t_max[row], times, zones, lookups, cells,
+                          t_enter, t_exit, used, FULL)
         offsets[row + 1] = used
     return used, last
 
 
 @jit(parallel=True)
-def trace_chunks(starts, regions, origins, directions, t_max, rho_edges, rho_sq, rho_kind,
-                  theta_edges, theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2,
-                  phi_nappe, phi_kind, cells, t_enter, t_exit, offsets):
+def trace_chunks(starts, regions, origins, directions, t_max, grid, cells, t_enter, t_exit,
+                 offsets):
     """Chunk c traces rays starts[c]..starts[c+1]-1 into regions[c]..regions[c+1]-1.
 
     Returns per chunk the end of its segments and the first row it could not
     fit (== starts[c+1] when the whole chunk fitted).
     """
     n_chunks = starts.shape[0] - 1
-    size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
+    size = grid_scratch_size(grid)
     ends = np.empty(n_chunks, dtype=np.int64)
     reached = np.empty(n_chunks, dtype=np.int64)
     for chunk in prange(n_chunks):
@@ -687,11 +682,8 @@ def trace_chunks(starts, regions, origins, directions, t_max, rho_edges, rho_sq,
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
         ends[chunk], reached[chunk] = trace_span(
-            starts[chunk], starts[chunk + 1], origins, directions, t_max,
-            rho_edges, rho_sq, rho_kind,
-            theta_edges, theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2,
-            phi_nappe, phi_kind, times, zones, lookups, cells, t_enter, t_exit, offsets,
-            regions[chunk], regions[chunk + 1],
+            starts[chunk], starts[chunk + 1], origins, directions, t_max, grid, times, zones,
+            lookups, cells, t_enter, t_exit, offsets, regions[chunk], regions[chunk + 1],
         )
     return ends, reached
 

@@ -13,6 +13,7 @@ running along the +y axis (phi == pi/2 everywhere) is inside when
 """
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -27,6 +28,27 @@ TWO_PI = 2.0 * np.pi
 
 # Rays per block in the batch kernels: each block allocates its scratch once.
 BLOCK = 256
+
+
+class GridArrays(NamedTuple):
+    """A grid as the kernels take it: one argument, not twelve (``Grid.kernel_args()``).
+
+    A plain named tuple of arrays and scalars, so Numba passes it by value on
+    the CPU and numba-cuda can pass it to a device kernel the same way.
+    """
+
+    rho_edges: np.ndarray
+    rho_sq: np.ndarray  # rho_edges ** 2
+    rho_kind: int
+    theta_edges: np.ndarray
+    theta_sin: np.ndarray
+    theta_cos: np.ndarray
+    theta_kind: int
+    theta_full: bool
+    phi_edges: np.ndarray
+    phi_tan2: np.ndarray  # tan(phi_edges) ** 2
+    phi_nappe: np.ndarray  # sign(phi_edges): the cone's half
+    phi_kind: int
 
 
 @jit(inline="always")

@@ -14,10 +14,10 @@ from .._jit import jit
 from .exact import (
     PHI,
     THETA,
+    grid_scratch_size,
     line_geometry,
     phi_plan,
     phi_times,
-    scratch_size,
     theta_plan,
     theta_times,
 )
@@ -46,9 +46,8 @@ def _left_within_snap(t_now, t_next, snap, t_closest, h2, i, rho_sq):
 
 
 @jit
-def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_edges, theta_sin,
-              theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe, phi_kind,
-              times, zones, lookups, free):
+def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zones, lookups,
+              free):
     """Flag the cells one sensor ray (unit direction) crosses up to ``t_max`` in
     ``free`` (indexed column-major, see ``apply_scan``); return the index of its
     end cell when it is a hit that ends inside the region, else -1.
@@ -67,8 +66,15 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
     whole shell, a sliver only when it is the dip at the closest approach
     (its chord is known). A ray through or near the y axis or the centre
     sweeps many columns within ~h there: those slivers are not flagged.
-    ``ir``, ``jt``, ``kp``: the origin's zones, shared by the scan.
+    ``ir``, ``jt``, ``kp``: the origin's zones, shared by the scan; ``grid``:
+    the grid's ``GridArrays``.
     """
+    rho_sq = grid.rho_sq
+    theta_edges = grid.theta_edges
+    theta_kind = grid.theta_kind
+    theta_full = grid.theta_full
+    phi_edges = grid.phi_edges
+    phi_kind = grid.phi_kind
     n_rho = rho_sq.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
@@ -109,9 +115,9 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
         lookups, False,
     )
     n_t = theta_times(cx, cz, dx, dz, t_closest, jt, jt_limit, th_sigma, th_steps, t_axis,
-                      theta_sin, theta_cos, theta_full, t_final, slack, times, zones)
+                      grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times, zones)
     n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps, ph2_start,
-                    ph2_steps, ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones)
+                    ph2_steps, ph_jump, grid.phi_tan2, grid.phi_nappe, t_final, slack, times, zones)
     zones[THETA, 0] = jt
     zones[PHI, 0] = kp
     times[THETA, n_t + 1] = np.inf
@@ -192,23 +198,21 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, rho_sq, theta_e
 
 
 @jit(parallel=True)
-def mark_scan(origin, directions, distances, is_hit, rho_edges, rho_sq, rho_kind, theta_edges,
-               theta_sin, theta_cos, theta_kind, theta_full, phi_edges, phi_tan2, phi_nappe,
-               phi_kind, free, hits):
+def mark_scan(origin, directions, distances, is_hit, grid, free, hits):
     """Walk every ray of a scan from one ``origin`` (see ``_walk_ray``).
 
-    ``free`` (threads, n_cells) uint8 has one row per thread, so no two
-    threads write the same place; ``hits[row]`` gets ray ``row``'s hit cell
-    (column-major index) or -1.
+    ``grid`` is the grid's ``GridArrays``. ``free`` (threads, n_cells) uint8
+    has one row per thread, so no two threads write the same place;
+    ``hits[row]`` gets ray ``row``'s hit cell (column-major index) or -1.
     """
     n_rays = directions.shape[0]
     ox = origin[0]
     oy = origin[1]
     oz = origin[2]
-    ir = rho_zone(ox, oy, oz, rho_edges, rho_kind)
-    jt = theta_zone(ox, oz, theta_edges, theta_kind)
-    kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
-    size = scratch_size(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
+    ir = rho_zone(ox, oy, oz, grid.rho_edges, grid.rho_kind)
+    jt = theta_zone(ox, oz, grid.theta_edges, grid.theta_kind)
+    kp = phi_zone(ox, oy, oz, grid.phi_edges, grid.phi_kind)
+    size = grid_scratch_size(grid)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         row_free = free[numba.get_thread_id()]
         times = np.empty((3, size), dtype=np.float64)
@@ -217,10 +221,7 @@ def mark_scan(origin, directions, distances, is_hit, rho_edges, rho_sq, rho_kind
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             hits[row] = _walk_ray(
                 ox, oy, oz, directions[row, 0], directions[row, 1], directions[row, 2],
-                distances[row], is_hit[row], ir, jt, kp, rho_sq,
-                theta_edges, theta_sin, theta_cos, theta_kind, theta_full,
-                phi_edges, phi_tan2, phi_nappe, phi_kind,
-                times, zones, lookups, row_free,
+                distances[row], is_hit[row], ir, jt, kp, grid, times, zones, lookups, row_free,
             )
 
 
