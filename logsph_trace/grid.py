@@ -280,10 +280,7 @@ class Grid:
             ``(i, j, k)`` per point; ``-1`` in all three columns outside the region.
         """
         array, single = validate.points("points", points)
-        cells = _locate.cells_of_points(
-            array, self.rho_edges, self.rho_kind, self.theta_edges, self.theta_kind,
-            self.phi_edges, self.phi_kind,
-        )
+        cells = _locate.cells_of_points(array, self.kernel_args())
         return cells[0] if single else cells
 
     def contains(self, points):

@@ -125,8 +125,7 @@ class OccupancyGrid:
             free_extent = np.zeros((threads, grid.n_theta * grid.n_phi), dtype=np.int64)
             hits = np.empty(distances.shape[0], dtype=np.int64)
             _kernels.mark_radial(np.ascontiguousarray(offsets), lengths, distances, is_hit,
-                                 grid.rho_edges, grid.rho_kind, grid.theta_edges, grid.theta_kind,
-                                 grid.phi_edges, grid.phi_kind, free_extent, hits)
+                                 grid.kernel_args(), free_extent, hits)
             _kernels.apply_radial(self.log_odds.reshape(-1), free_extent, hits,
                                   np.zeros(n_cells, dtype=np.uint8), grid.n_theta, grid.n_phi,
                                   *update)

@@ -77,12 +77,11 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     if method == "exact":
         t_max = validate.distances(t_max, origins.shape[0])
         return batching.run_exact(grid, origins, directions, t_max, parallel)
-    kinds = (grid.rho_edges, grid.rho_kind, grid.theta_edges, grid.theta_kind)
     if method == "bisect":
-        args = kinds + (grid.theta_full, grid.phi_edges, grid.phi_kind, default_t, max_iter)
+        args = (grid.kernel_args(), default_t, max_iter)
         rows = _bisect.bisect_rows
     else:
-        args = kinds + (grid.phi_edges, grid.phi_kind)
+        args = (grid.kernel_args(),)
         rows = _thibaudeau.thibaudeau_rows
     return batching.run_csr(rows.pick(parallel), origins, directions, args)
 

@@ -31,13 +31,12 @@ _GREW = 2
 def _inside(ox, oy, oz, dx, dy, dz, t,
             rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind):
     i, _, _ = cell_of_point(ox + t * dx, oy + t * dy, oz + t * dz,
-                    rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind)
+                            rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind)
     return i >= 0
 
 
 @jit
-def entry_time(ox, oy, oz, dx, dy, dz,
-               rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind, candidates):
+def entry_time(ox, oy, oz, dx, dy, dz, grid, candidates):
     """First t >= 0 at which the ray is inside the region (section 2.3), or -1.
 
     The candidates are t = 0 and the crossings of the region's own bounds with
@@ -47,6 +46,9 @@ def entry_time(ox, oy, oz, dx, dy, dz,
     is inside is the entry ("overlapping the intervals"). ``candidates`` is
     scratch of length >= 11.
     """
+    rho_edges, rho_kind = grid.rho_edges, grid.rho_kind
+    theta_edges, theta_kind = grid.theta_edges, grid.theta_kind
+    phi_edges, phi_kind = grid.phi_edges, grid.phi_kind
     n = 0
     candidates[n] = 0.0
     n += 1
@@ -95,20 +97,23 @@ def entry_time(ox, oy, oz, dx, dy, dz,
 
 
 @jit
-def bisect_ray(ox, oy, oz, dx, dy, dz,
-               rho_edges, rho_kind, theta_edges, theta_kind, theta_full, phi_edges, phi_kind,
-               default_t, max_iter, candidates, cells, t_enter, t_exit, start, write):
-    """Algorithm 1 for one ray (unit direction); returns the number of cells reported."""
+def bisect_ray(origins, directions, row, grid, default_t, max_iter, candidates,
+               cells, t_enter, t_exit, start, write):
+    """Algorithm 1 for ray ``row`` (unit direction); returns the number of cells reported."""
+    ox, oy, oz = origins[row, 0], origins[row, 1], origins[row, 2]
+    dx, dy, dz = directions[row, 0], directions[row, 1], directions[row, 2]
+    rho_edges, rho_kind = grid.rho_edges, grid.rho_kind
+    theta_edges, theta_kind = grid.theta_edges, grid.theta_kind
+    phi_edges, phi_kind = grid.phi_edges, grid.phi_kind
+    theta_full = grid.theta_full
     n_theta = theta_edges.shape[0] - 1
-    t_first = entry_time(ox, oy, oz, dx, dy, dz,
-                         rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind,
-                         candidates)
+    t_first = entry_time(ox, oy, oz, dx, dy, dz, grid, candidates)
     if t_first < 0.0:
         return 0
     # The entry lies on a boundary; the first cell is read just inside it.
     t0 = t_first + 1e-9 * rho_edges[-1]
     i, j, k = cell_of_point(ox + t0 * dx, oy + t0 * dy, oz + t0 * dz,
-                    rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind)
+                            rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind)
     if i < 0:
         return 0
     count = 0
@@ -125,7 +130,8 @@ def bisect_ray(ox, oy, oz, dx, dy, dz,
     for _ in range(max_iter):
         t1 = t0 + dt
         i1, j1, k1 = cell_of_point(ox + t1 * dx, oy + t1 * dy, oz + t1 * dz,
-                           rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind)
+                                   rho_edges, rho_kind, theta_edges, theta_kind,
+                                   phi_edges, phi_kind)
         if i1 < 0:
             if write:
                 t_exit[start + count - 1] = t1
@@ -164,8 +170,8 @@ def bisect_ray(ox, oy, oz, dx, dy, dz,
 
 
 @jit_twins
-def bisect_rows(origins, directions, rho_edges, rho_kind, theta_edges, theta_kind, theta_full,
-                phi_edges, phi_kind, default_t, max_iter, offsets, cells, t_enter, t_exit, write):
+def bisect_rows(origins, directions, grid, default_t, max_iter, offsets, cells, t_enter, t_exit,
+                write):
     """Count (``write`` False) or write (True) every ray's cells; return the counts.
 
     One source for both CSR passes (see ``cartesian.box_rows``).
@@ -176,10 +182,7 @@ def bisect_rows(origins, directions, rho_edges, rho_kind, theta_edges, theta_kin
         candidates = np.empty(11)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             counts[row] = bisect_ray(
-                origins[row, 0], origins[row, 1], origins[row, 2],
-                directions[row, 0], directions[row, 1], directions[row, 2],
-                rho_edges, rho_kind, theta_edges, theta_kind, theta_full, phi_edges, phi_kind,
-                default_t, max_iter, candidates, cells, t_enter, t_exit,
-                offsets[row] if write else 0, write,
+                origins, directions, row, grid, default_t, max_iter, candidates,
+                cells, t_enter, t_exit, offsets[row] if write else 0, write,
             )
     return counts

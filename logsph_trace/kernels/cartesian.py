@@ -35,12 +35,14 @@ def _axis_start(origin, direction, t_start, low, size, n):
 
 
 @jit
-def trace_box_ray(ox, oy, oz, dx, dy, dz, low, size, shape, cells, t_enter, t_exit, start, write):
-    """Trace one ray (unit direction) through the box; return its number of voxels.
+def trace_box_ray(origins, directions, row, low, size, shape, cells, t_enter, t_exit, start, write):
+    """Trace ray ``row`` (unit direction) through the box; return its number of voxels.
 
     The loop moves one index by one each time and stops when any index leaves
     its range, so it runs at most ``shape[0] + shape[1] + shape[2]`` times.
     """
+    ox, oy, oz = origins[row, 0], origins[row, 1], origins[row, 2]
+    dx, dy, dz = directions[row, 0], directions[row, 1], directions[row, 2]
     near_x, far_x = _slab(ox, dx, low[0], low[0] + shape[0] * size[0])
     near_y, far_y = _slab(oy, dy, low[1], low[1] + shape[1] * size[1])
     near_z, far_z = _slab(oz, dz, low[2], low[2] + shape[2] * size[2])
@@ -93,8 +95,7 @@ def box_rows(origins, directions, low, size, shape, offsets, cells, t_enter, t_e
     counts = np.empty(origins.shape[0], dtype=np.int64)
     for row in prange(origins.shape[0]):
         counts[row] = trace_box_ray(
-            origins[row, 0], origins[row, 1], origins[row, 2],
-            directions[row, 0], directions[row, 1], directions[row, 2],
-            low, size, shape, cells, t_enter, t_exit, offsets[row] if write else 0, write,
+            origins, directions, row, low, size, shape, cells, t_enter, t_exit,
+            offsets[row] if write else 0, write,
         )
     return counts

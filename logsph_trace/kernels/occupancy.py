@@ -309,8 +309,7 @@ def first_occupied(offsets, cells, t_exit, log_odds, n_theta, n_phi, ray_weights
 
 
 @jit(parallel=True)
-def mark_radial(points, lengths, distances, is_hit, rho_edges, rho_kind, theta_edges, theta_kind,
-                 phi_edges, phi_kind, free_extent, hits):
+def mark_radial(points, lengths, distances, is_hit, grid, free_extent, hits):
     """The sensor at the grid's origin: every ray is radial, so its cells are one
     (theta, phi) column, free up to the shell holding its end point.
 
@@ -324,6 +323,9 @@ def mark_radial(points, lengths, distances, is_hit, rho_edges, rho_kind, theta_e
     Three lookups per ray instead of a traversal.
     """
     n_rays = points.shape[0]
+    rho_edges, rho_kind = grid.rho_edges, grid.rho_kind
+    theta_edges, theta_kind = grid.theta_edges, grid.theta_kind
+    phi_edges, phi_kind = grid.phi_edges, grid.phi_kind
     n_rho = rho_edges.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1

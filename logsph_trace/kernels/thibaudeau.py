@@ -26,10 +26,13 @@ def scratch_length(n_rho, n_theta, n_phi):
 
 
 @jit
-def thibaudeau_ray(ox, oy, oz, dx, dy, dz,
-                   rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind,
-                   breaks, cells, t_enter, t_exit, start, write):
-    """One ray (unit direction); ``breaks`` is scratch of length ``scratch_length``."""
+def thibaudeau_ray(origins, directions, row, grid, breaks, cells, t_enter, t_exit, start, write):
+    """Ray ``row`` (unit direction); ``breaks`` is scratch of length ``scratch_length``."""
+    ox, oy, oz = origins[row, 0], origins[row, 1], origins[row, 2]
+    dx, dy, dz = directions[row, 0], directions[row, 1], directions[row, 2]
+    rho_edges, rho_kind = grid.rho_edges, grid.rho_kind
+    theta_edges, theta_kind = grid.theta_edges, grid.theta_kind
+    phi_edges, phi_kind = grid.phi_edges, grid.phi_kind
     n_rho = rho_edges.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
@@ -130,22 +133,20 @@ def thibaudeau_ray(ox, oy, oz, dx, dy, dz,
 
 
 @jit_twins
-def thibaudeau_rows(origins, directions, rho_edges, rho_kind, theta_edges, theta_kind, phi_edges,
-                    phi_kind, offsets, cells, t_enter, t_exit, write):
+def thibaudeau_rows(origins, directions, grid, offsets, cells, t_enter, t_exit, write):
     """Count (``write`` False) or write (True) every ray's cells; return the counts.
 
     One source for both CSR passes (see ``cartesian.box_rows``).
     """
     n_rays = origins.shape[0]
     counts = np.empty(n_rays, dtype=np.int64)
-    size = scratch_length(rho_edges.shape[0] - 1, theta_edges.shape[0] - 1, phi_edges.shape[0] - 1)
+    size = scratch_length(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
+                          grid.phi_edges.shape[0] - 1)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         breaks = np.empty(size)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             counts[row] = thibaudeau_ray(
-                origins[row, 0], origins[row, 1], origins[row, 2],
-                directions[row, 0], directions[row, 1], directions[row, 2],
-                rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind,
-                breaks, cells, t_enter, t_exit, offsets[row] if write else 0, write,
+                origins, directions, row, grid, breaks, cells, t_enter, t_exit,
+                offsets[row] if write else 0, write,
             )
     return counts
