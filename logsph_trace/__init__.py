@@ -6,6 +6,7 @@ and for how long? See ``Grid``, ``trace`` and ``trace_many``.
 
 from importlib import metadata as _metadata
 
+from ._validate import AngleUnitWarning
 from .cone import ConeTrace, trace_cone, trace_cones
 from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
 from .occupancy import GazeTargets, OccupancyGrid, fixation_probability, gaze_targets
@@ -13,6 +14,7 @@ from .trace import METHODS, trace, trace_many
 from .traces import Trace, Traces
 
 __all__ = [
+    "AngleUnitWarning",
     "ConeTrace",
     "GazeTargets",
     "Grid",

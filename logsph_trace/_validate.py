@@ -223,18 +223,50 @@ def bisect_options(grid, default_t, max_iter):
     return default_t, int(max_iter)
 
 
-def half_angle(half_angle):
+def half_angle(half_angle, name="half_angle"):
+    """Check a cone half-angle: radians in [0, pi/2); warn above ``DEGREES_LIKELY``."""
     try:
         value = float(half_angle)
     except (TypeError, ValueError):
-        raise ValueError(f"half_angle must be a number of radians, got {half_angle!r}") from None
+        raise ValueError(f"{name} must be a number of radians, got {half_angle!r}") from None
     if not (np.isfinite(value) and 0.0 <= value < np.pi / 2):
-        raise ValueError(f"half_angle must be in [0, pi/2) radians, got {half_angle!r}")
+        raise ValueError(f"{name} must be in [0, pi/2) radians, got {half_angle!r}")
+    if value > DEGREES_LIKELY:
+        import warnings
+
+        warnings.warn(
+            f"{name}={value:g} rad is a {math.degrees(value):.1f}-degree cone; angles are in "
+            f"radians (np.radians({value:g}) if you meant {value:g} degrees)",
+            AngleUnitWarning, stacklevel=4,
+        )
     return value
 
 
-def unit(name, vector):
-    return unit_directions(vectors(name, vector), name)[0]
+def vector(name, value):
+    """One 3-vector: shape (3,) (or (1, 3)), finite, returned as (3,) float64."""
+    array = vectors(name, value)
+    if array.shape[0] != 1:
+        raise ValueError(f"{name} must be one vector of shape (3,), got shape {np.shape(value)}")
+    return array[0]
+
+
+def point(name, value):
+    """One position: :func:`vector` whose squared length is finite."""
+    return origin_size(name, vector(name, value)[None, :])[0]
+
+
+def unit(name, value):
+    """One direction, scaled to unit length; zero is an error."""
+    return unit_directions(vector(name, value)[None, :], name)[0]
+
+
+class AngleUnitWarning(UserWarning):
+    """An angle that is probably in degrees where radians are expected."""
+
+
+# Above this a cone half-angle is more likely degrees typed as radians
+# (half_angle=5 meaning 5 degrees) than a gaze: 30 degrees.
+DEGREES_LIKELY = math.radians(30.0)
 
 
 def probability(name, value, low=0.0, high=1.0):
@@ -245,3 +277,21 @@ def probability(name, value, low=0.0, high=1.0):
     if not (low < number < high):
         raise ValueError(f"{name} must be in ({low:g}, {high:g}), got {value!r}")
     return number
+
+
+def log_odds(value, shape):
+    """Check a map's log-odds: return a writeable C-contiguous float32 array of ``shape``."""
+    try:
+        array = np.asarray(value)
+        if array.dtype.kind not in "biuf":
+            raise TypeError
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"log_odds must be an array of numbers of shape {shape}, got {type(value).__name__}"
+        ) from None
+    if array.shape != tuple(shape):
+        raise ValueError(f"log_odds has shape {array.shape} but the grid has shape {tuple(shape)}")
+    array = np.require(array, dtype=np.float32, requirements=["C", "W", "A"])
+    if not np.all(np.isfinite(array)):
+        raise ValueError("log_odds must be finite")
+    return array

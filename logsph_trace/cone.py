@@ -110,8 +110,12 @@ def cone_directions(axis, half_angle, n_rays, pattern="fibonacci"):
     directions : numpy.ndarray, shape (n, 3)
     angles : numpy.ndarray, shape (n,)
     """
-    axis = validate.unit("axis", axis)
-    half_angle = validate.half_angle(half_angle)
+    return _directions(validate.unit("axis", axis), validate.half_angle(half_angle), n_rays,
+                       pattern)
+
+
+def _directions(axis, half_angle, n_rays, pattern):
+    """:func:`cone_directions` for a checked unit ``axis`` and ``half_angle``."""
     if pattern not in PATTERNS:
         raise ValueError(f"pattern must be one of {PATTERNS}, got {pattern!r}")
     if isinstance(n_rays, bool) or not isinstance(n_rays, (int, np.integer)) or n_rays < 1:
@@ -154,10 +158,13 @@ def default_ray_count(grid, origin, half_angle):
     poles cells are narrower in theta than ``s``, so thin polar cells can
     still fall between rays.
     """
-    half_angle = validate.half_angle(half_angle)
+    return _ray_count(grid, validate.point("origin", origin), validate.half_angle(half_angle))
+
+
+def _ray_count(grid, origin, half_angle):
+    """:func:`default_ray_count` for a checked ``origin`` and ``half_angle``."""
     if half_angle == 0.0:
         return 1
-    origin = validate.origin_size("origin", validate.vectors("origin", origin))[0]
     cell_angle = min(np.min(np.diff(grid.theta_edges)), np.min(np.diff(grid.phi_edges)))
     cell_width = grid.rho_max * cell_angle
     reach = np.linalg.norm(origin) + grid.rho_max
@@ -180,16 +187,21 @@ def _ray_weights(angles, half_angle, weighting, sigma):
             raise ValueError(f"sigma must be a positive number of radians, got {sigma!r}") from None
         if not (np.isfinite(sigma) and sigma > 0.0):
             raise ValueError(f"sigma must be a positive number of radians, got {sigma!r}")
-        weights = np.exp(-0.5 * (angles / sigma) ** 2)
+        # Relative to the ray nearest the axis, so a sigma far below the spacing
+        # of the rays cannot underflow every weight to 0 (and 0 / 0 to NaN).
+        exponent = -0.5 * (angles / sigma) ** 2
+        weights = np.exp(exponent - exponent.max())
     return weights / weights.sum()
 
 
 def sample_rays(grid, origin, direction, half_angle, n_rays, pattern, weighting, sigma):
     """Directions and weights of a cone's rays (``n_rays=None``: the default count)."""
     half_angle = validate.half_angle(half_angle)
+    origin = validate.point("origin", origin)
     if n_rays is None:
-        n_rays = default_ray_count(grid, origin, half_angle)
-    directions, angles = cone_directions(direction, half_angle, n_rays, pattern)
+        n_rays = _ray_count(grid, origin, half_angle)
+    directions, angles = _directions(validate.unit("direction", direction), half_angle, n_rays,
+                                     pattern)
     return directions, _ray_weights(angles, half_angle, weighting, sigma)
 
 
@@ -276,7 +288,7 @@ def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibona
         ``pattern``, ``weighting`` or ``sigma``; ``grid`` not a Grid.
     """
     validate.grid(grid)
-    origin = validate.origin_size("origin", validate.vectors("origin", origin))[0]
+    origin = validate.point("origin", origin)
     directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
     n_rays = directions.shape[0]
@@ -314,9 +326,19 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     list of ConeTrace
     """
     validate.grid(grid)
-    origins = validate.vectors("origins", origins)
+    origins = validate.origin_size("origins", validate.vectors("origins", origins))
     directions = validate.vectors("directions", directions, rows=origins.shape[0])
-    half_angles = np.broadcast_to(np.asarray(half_angles, dtype=np.float64), origins.shape[:1])
+    n_cones = origins.shape[0]
+    try:
+        angles = np.asarray(half_angles, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"half_angles must be numbers of radians, got {half_angles!r}") from None
+    if angles.ndim > 1 or (angles.ndim == 1 and angles.shape[0] != n_cones):
+        raise ValueError(f"half_angles must be one number or one per cone ({n_cones}), "
+                         f"got shape {angles.shape}")
+    half_angles = np.broadcast_to(angles, (n_cones,))
+    if n_cones == 0:
+        return []
     samples = [
         sample_rays(grid, origin, direction, angle, n_rays, pattern, weighting, sigma)
         for origin, direction, angle in zip(origins, directions, half_angles)

@@ -149,7 +149,7 @@ class Grid:
                 if np.array_equal(edges, np.linspace(edges[0], edges[-1], edges.size)):
                     kinds[axis] = _locate.UNIFORM
         grid = cls.__new__(cls)
-        grid._setup(rho, theta, phi, spacing, *kinds)
+        grid._setup(rho, theta, phi, spacing, *kinds)  # Grid's own set-up, after its checks
         return grid
 
     @classmethod
@@ -179,16 +179,20 @@ class Grid:
                    phi_range=tuple(np.radians(phi_range)), spacing=spacing)
 
     def _setup(self, rho_edges, theta_edges, phi_edges, spacing, rho_kind, theta_kind, phi_kind):
-        self.rho_edges = rho_edges
-        self.theta_edges = theta_edges
-        self.phi_edges = phi_edges
-        self.spacing = spacing
-        self.rho_kind = int(rho_kind)
-        self.theta_kind = int(theta_kind)
-        self.phi_kind = int(phi_kind)
-        self.theta_full = bool(theta_edges[-1] - theta_edges[0] >= 2 * np.pi)
         for array in (rho_edges, theta_edges, phi_edges):
             array.setflags(write=False)
+        fields = dict(
+            rho_edges=rho_edges, theta_edges=theta_edges, phi_edges=phi_edges, spacing=spacing,
+            rho_kind=int(rho_kind), theta_kind=int(theta_kind), phi_kind=int(phi_kind),
+            theta_full=bool(theta_edges[-1] - theta_edges[0] >= 2 * np.pi),
+        )
+        for name, value in fields.items():
+            object.__setattr__(self, name, value)
+
+    def __setattr__(self, name, value):
+        # A grid is shared by maps, traces and the kernels' cached bundle: a
+        # changed edge array would make them disagree (and index out of bounds).
+        raise AttributeError(f"Grid is immutable; build a new one instead of setting {name!r}")
 
     # ---- shape and bounds -------------------------------------------------
     @property
@@ -262,7 +266,7 @@ class Grid:
                 theta, np.sin(theta), np.cos(theta), self.theta_kind, self.theta_full,
                 phi, np.tan(phi) ** 2, np.sign(phi), self.phi_kind,
             )
-            self._kernel_args = cached
+            object.__setattr__(self, "_kernel_args", cached)
         return cached
 
     # ---- conversions ------------------------------------------------------

@@ -10,6 +10,7 @@ actually stops at, so an object hidden behind another is not reported as
 looked at.
 """
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +18,7 @@ import numba
 import numpy as np
 
 from . import _validate as validate
+from ._files import atomic_write, npz_path
 from .cone import aggregate_cells, sample_rays
 from .grid import Grid
 from .kernels import occupancy as _kernels
@@ -40,30 +42,47 @@ class OccupancyGrid:
         Clamping bounds (OctoMap: 0.1192 and 0.971), so a cell can always
         change again within a few scans.
 
+    log_odds : array_like, shape ``grid.shape``, optional
+        A starting map (e.g. one from elsewhere); default all unknown.
+
     Attributes
     ----------
-    log_odds : numpy.ndarray, float32, shape ``grid.shape``
-        0 is unknown (p = 0.5). May be given (e.g. a map from elsewhere); its
-        shape must be the grid's.
+    grid : Grid
+        Read-only: a map's cells are fixed when it is made.
+    log_odds : numpy.ndarray, float32, C-contiguous, shape ``grid.shape``
+        0 is unknown (p = 0.5). Its values may be changed in place. Assigning
+        an array checks its shape and values and stores a C-contiguous float32
+        copy (an assigned array that is already one is used as it is).
     """
 
     def __init__(self, grid, p_hit=0.7, p_miss=0.4, p_min=0.1192, p_max=0.971, log_odds=None):
         validate.grid(grid)
-        self.grid = grid
+        self._grid = grid
         self.p_hit = validate.probability("p_hit", p_hit, 0.5, 1.0)
         self.p_miss = validate.probability("p_miss", p_miss, 0.0, 0.5)
         self.p_min = validate.probability("p_min", p_min, 0.0, 0.5)
         self.p_max = validate.probability("p_max", p_max, 0.5, 1.0)
-        self.log_odds = np.zeros(grid.shape, dtype=np.float32)
-        if log_odds is not None:
-            log_odds = np.asarray(log_odds, dtype=np.float32)
-            if log_odds.shape != grid.shape:
-                raise ValueError(
-                    f"log_odds has shape {log_odds.shape} but the grid has shape {grid.shape}"
-                )
-            if not np.all(np.isfinite(log_odds)):
-                raise ValueError("log_odds must be finite")
-            self.log_odds[...] = log_odds
+        if log_odds is None:
+            self._log_odds = np.zeros(grid.shape, dtype=np.float32)
+        else:
+            self.log_odds = log_odds
+
+    @property
+    def grid(self):
+        """The map's grid (read-only)."""
+        return self._grid
+
+    @property
+    def log_odds(self):
+        """Log-odds per cell, float32, shape ``grid.shape`` (see the class docstring)."""
+        return self._log_odds
+
+    @log_odds.setter
+    def log_odds(self, value):
+        # The kernels index this array as a flat C-ordered block of grid.shape:
+        # any other shape, layout or a read-only buffer would be written out of
+        # bounds, lost in a copy, or refused by Numba.
+        self._log_odds = validate.log_odds(value, self._grid.shape)
 
     def __repr__(self):
         occupied = int(np.count_nonzero(self.log_odds > 0))
@@ -97,8 +116,7 @@ class OccupancyGrid:
         self
         """
         points = validate.vectors("points", points)
-        origin = validate.vectors("sensor_origin", sensor_origin)
-        origin = validate.origin_size("sensor_origin", origin)[0]
+        origin = validate.point("sensor_origin", sensor_origin)
         offsets = points - origin if np.any(origin) else points
         distances = validate.row_norms(offsets)
         if not np.all(distances > 0.0):  # a point at the sensor is no ray
@@ -110,8 +128,8 @@ class OccupancyGrid:
             directions = np.ascontiguousarray(offsets / lengths[:, None])
         is_hit = np.ones(distances.shape[0], dtype=np.bool_)
         if max_range is not None:
-            max_range = float(max_range)
-            if not (np.isfinite(max_range) and max_range > 0):
+            max_range = validate.finite("max_range", max_range)
+            if not max_range > 0:
                 raise ValueError(f"max_range must be a positive number, got {max_range!r}")
             is_hit = distances <= max_range
             distances = np.minimum(distances, max_range)
@@ -149,28 +167,65 @@ class OccupancyGrid:
             raise ValueError(f"factor must be in [0, 1], got {factor!r}") from None
         if not 0.0 <= factor <= 1.0:
             raise ValueError(f"factor must be in [0, 1], got {factor!r}")
-        self.log_odds *= np.float32(factor)
+        np.multiply(self._log_odds, np.float32(factor), out=self._log_odds)
         return self
 
     def save(self, path):
-        """Write the map and its grid to a ``.npz`` file."""
+        """Write the map and its grid to a ``.npz`` file; return the path written.
+
+        As :func:`numpy.savez`, ``.npz`` is added to a name without it. The
+        write is atomic: if it fails or is interrupted, an existing file of
+        that name is left as it was and no partial file remains.
+        """
         grid = self.grid
-        np.savez_compressed(
-            Path(path), log_odds=self.log_odds, rho_edges=grid.rho_edges,
-            theta_edges=grid.theta_edges, phi_edges=grid.phi_edges,
-            kinds=np.array([grid.rho_kind, grid.theta_kind, grid.phi_kind]),
-            spacing=np.array(grid.spacing),
-            probabilities=np.array([self.p_hit, self.p_miss, self.p_min, self.p_max]),
-        )
+        path = npz_path(path)
+        with atomic_write(path) as stream:
+            np.savez_compressed(
+                stream, log_odds=self.log_odds, rho_edges=grid.rho_edges,
+                theta_edges=grid.theta_edges, phi_edges=grid.phi_edges,
+                spacing=np.array(grid.spacing),
+                probabilities=np.array([self.p_hit, self.p_miss, self.p_min, self.p_max]),
+            )
+        return path
 
     @classmethod
     def load(cls, path):
-        """Read a map written by :meth:`save`."""
-        with np.load(Path(path)) as data:
-            # Through the constructor, so a saved grid is validated like a new one.
-            grid = Grid.from_edges(data["rho_edges"], data["theta_edges"], data["phi_edges"],
-                                   spacing=str(data["spacing"]))
-            return cls(grid, *[float(p) for p in data["probabilities"]], log_odds=data["log_odds"])
+        """Read a map written by :meth:`save`.
+
+        The grid is rebuilt through :meth:`Grid.from_edges`, so a file is
+        checked like new input.
+
+        Raises
+        ------
+        FileNotFoundError, PermissionError, IsADirectoryError
+            As ``open`` does.
+        ValueError
+            The file is not a valid map (corrupt, truncated, missing or bad
+            arrays); the message names the file.
+        """
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                missing = _SAVED_ARRAYS.difference(data.files)
+                if missing:
+                    raise ValueError(f"missing arrays {sorted(missing)}")
+                grid = Grid.from_edges(data["rho_edges"], data["theta_edges"],
+                                       data["phi_edges"], spacing=str(data["spacing"]))
+                probabilities = np.asarray(data["probabilities"], dtype=np.float64)
+                if probabilities.shape != (4,):
+                    raise ValueError(f"probabilities must hold 4 numbers, got {probabilities}")
+                return cls(grid, *probabilities.tolist(), log_odds=data["log_odds"])
+        except (FileNotFoundError, PermissionError, IsADirectoryError):
+            raise
+        except (ValueError, TypeError, KeyError, IndexError, EOFError, OSError,
+                zipfile.BadZipFile) as error:
+            raise ValueError(f"{path} is not a valid OccupancyGrid file: {error}") from None
+
+
+# What OccupancyGrid.save writes; older files also hold "kinds", which load ignores.
+_SAVED_ARRAYS = frozenset(
+    ("log_odds", "rho_edges", "theta_edges", "phi_edges", "spacing", "probabilities")
+)
 
 
 @dataclass(frozen=True)
@@ -201,6 +256,8 @@ def gaze_targets(occupancy, origin, direction, threshold=0.6):
     """
     _check_occupancy(occupancy)
     threshold = validate.probability("threshold", threshold)
+    origin = validate.point("origin", origin)
+    direction = validate.vector("direction", direction)
     ray = trace_many(occupancy.grid, origin, direction, parallel=False)[0]
     if len(ray) == 0:
         return GazeTargets(ray.cells, np.empty(0), np.empty(0))
@@ -257,7 +314,7 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
     min_distance = float(min_distance)
     if not (np.isfinite(min_distance) and min_distance >= 0.0):
         raise ValueError(f"min_distance must be >= 0, got {min_distance!r}")
-    origin = validate.origin_size("origin", validate.vectors("origin", origin))[0]
+    origin = validate.point("origin", origin)
     directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
     traces = trace_many(grid, np.broadcast_to(origin, directions.shape), directions)

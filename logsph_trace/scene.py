@@ -50,7 +50,7 @@ class Scene:
         The slab test per box, vectorised over rays; ``directions`` need not be unit
         length (distances are in units of the direction's length).
         """
-        origin = validate.vectors("origin", origin)[0]
+        origin = validate.vector("origin", origin)
         directions = validate.vectors("directions", directions)
         with np.errstate(divide="ignore", invalid="ignore"):
             t_low = (self.low[None, :, :] - origin) / directions[:, None, :]
@@ -90,10 +90,10 @@ class Scene:
         depth : numpy.ndarray, shape (height, width)
             Distance per pixel along its ray (inf where nothing is hit).
         """
-        sensor = validate.vectors("sensor", sensor)[0]
-        forward = validate.vectors("forward", forward)[0]
+        sensor = validate.vector("sensor", sensor)
+        forward = validate.vector("forward", forward)
         forward = forward / np.linalg.norm(forward)
-        up = validate.vectors("up", up)[0]
+        up = validate.vector("up", up)
         right = np.cross(up, forward)
         right /= np.linalg.norm(right)
         up = np.cross(forward, right)

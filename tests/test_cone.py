@@ -149,7 +149,7 @@ def test_reused_scratch_does_not_change_earlier_results():
         (dict(half_angle="wide"), "half_angle must be a number"),
         (dict(origin=[np.nan, 0, 0]), "origin must be finite"),
         (dict(origin=[0, 0]), r"origin must have shape \(m, 3\) or \(3,\)"),
-        (dict(direction=[0, 0, 0]), "axis must be non-zero"),
+        (dict(direction=[0, 0, 0]), "direction must be non-zero"),
         (dict(n_rays=0), "n_rays must be a positive integer"),
         (dict(pattern="spiral"), "pattern must be one of"),
         (dict(weighting="cosine"), "weighting must be one of"),

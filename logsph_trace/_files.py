@@ -1,0 +1,52 @@
+"""Files that survive failures: every write goes to a temporary file first.
+
+:func:`atomic_write` yields a binary stream on a temporary file in the target's
+own directory (so the final rename never crosses file systems). Only when the
+caller's block finishes is the file flushed, fsynced and moved over the target
+with ``os.replace``, which is atomic on POSIX and Windows. On any failure --
+a full disk, an exception, Ctrl-C -- the temporary file is removed and the old
+target, if there was one, is left exactly as it was.
+"""
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+
+def _default_mode():
+    """Permissions a newly created file gets under the current umask."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+@contextlib.contextmanager
+def atomic_write(path):
+    """Write ``path`` all or nothing: ``with atomic_write(path) as stream: ...``."""
+    path = Path(path)
+    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.",
+                                             suffix=".part")
+    try:
+        os.fchmod(descriptor, _default_mode())  # mkstemp makes it private (0600)
+        with os.fdopen(descriptor, "wb") as stream:
+            yield stream
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
+        raise
+    with contextlib.suppress(OSError):  # make the rename itself durable where it can be
+        directory = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(directory)
+        finally:
+            os.close(directory)
+
+
+def npz_path(path):
+    """Return the name ``numpy.savez`` would write: ``path`` with ``.npz`` added if missing."""
+    path = Path(path)
+    return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")

@@ -1,0 +1,241 @@
+"""Misuse that used to crash, lose data or mislead (issue 11), each as a regression test."""
+
+import os
+
+import numpy as np
+import pytest
+
+import logsph_trace as lt
+from logsph_trace.occupancy import OccupancyGrid
+
+SMALL = lt.Grid(0.3, 10, 16, 36, 18)
+
+
+def _points(n=200, seed=0):
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(n, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    return directions * rng.uniform(1.0, 9.0, (n, 1))
+
+
+# ---- the map's attributes -------------------------------------------------
+
+def test_a_maps_grid_cannot_be_replaced():
+    bvm = OccupancyGrid(SMALL)
+    with pytest.raises(AttributeError):
+        bvm.grid = lt.Grid(0.3, 10, 64, 360, 180)  # used to write out of bounds (exit 139)
+    bvm.integrate(_points(), [0, 0, 0])
+    assert bvm.grid is SMALL
+
+
+def test_a_grid_cannot_be_changed_in_place():
+    grid = lt.Grid(0.3, 10, 16, 36, 18)
+    with pytest.raises(AttributeError, match="immutable"):
+        grid.rho_edges = np.linspace(0.3, 10, 100)
+    with pytest.raises(ValueError):
+        grid.theta_edges[0] = 1.0  # read-only array
+
+
+@pytest.mark.parametrize("bad", [np.zeros((16, 36)), np.zeros((64, 360, 180)), np.zeros(16 * 36 * 18)])
+def test_log_odds_of_the_wrong_shape_is_refused(bad):
+    bvm = OccupancyGrid(SMALL)
+    with pytest.raises(ValueError, match="log_odds has shape"):
+        bvm.log_odds = bad
+    bvm.integrate(_points(), [0, 0, 0])
+    assert bvm.log_odds.shape == SMALL.shape
+
+
+def test_log_odds_assigned_non_contiguous_still_receives_updates():
+    bvm = OccupancyGrid(SMALL)
+    wide = np.zeros(SMALL.shape[:2] + (2 * SMALL.shape[2],), dtype=np.float32)
+    bvm.log_odds = wide[:, :, ::2]  # right shape, not contiguous: was silently copied
+    bvm.integrate(_points(), [0, 0, 0])
+    assert np.count_nonzero(bvm.log_odds) > 0
+    assert bvm.log_odds.flags.c_contiguous and bvm.log_odds.dtype == np.float32
+
+
+def test_read_only_or_integer_log_odds_is_copied_not_refused():
+    frozen = np.zeros(SMALL.shape, dtype=np.float32)
+    frozen.setflags(write=False)
+    bvm = OccupancyGrid(SMALL, log_odds=frozen)
+    bvm.integrate(_points(), [0, 0, 0])  # was a numba TypingError
+    assert np.count_nonzero(bvm.log_odds) > 0 and not np.any(frozen)
+    bvm.log_odds = np.zeros(SMALL.shape, dtype=np.int64)
+    assert bvm.log_odds.dtype == np.float32
+
+
+@pytest.mark.parametrize("bad, match", [
+    ("abc", "log_odds must be an array of numbers"),
+    (np.full(SMALL.shape, np.nan), "log_odds must be finite"),
+])
+def test_bad_log_odds_values_name_the_argument(bad, match):
+    with pytest.raises(ValueError, match=match):
+        OccupancyGrid(SMALL, log_odds=bad)
+
+
+# ---- files ----------------------------------------------------------------
+
+def test_a_failed_save_keeps_the_old_map_and_leaves_no_partial_file(tmp_path, monkeypatch):
+    path = tmp_path / "map.npz"
+    old = OccupancyGrid(SMALL)
+    old.integrate(_points(), [0, 0, 0])
+    assert old.save(path) == path
+    before = path.read_bytes()
+
+    def disk_full(stream, **arrays):
+        stream.write(b"x" * 1000)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez_compressed", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        OccupancyGrid(SMALL).save(path)
+    assert path.read_bytes() == before
+    assert os.listdir(tmp_path) == ["map.npz"]
+
+
+def test_an_interrupted_save_keeps_the_old_map(tmp_path, monkeypatch):
+    path = tmp_path / "map.npz"
+    OccupancyGrid(SMALL).save(path)
+    before = path.read_bytes()
+
+    def interrupted(stream, **arrays):
+        stream.write(b"partial")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "savez_compressed", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        OccupancyGrid(SMALL).save(path)
+    assert path.read_bytes() == before
+    assert os.listdir(tmp_path) == ["map.npz"]
+
+
+def test_save_adds_npz_like_numpy_and_says_so(tmp_path):
+    written = OccupancyGrid(SMALL).save(tmp_path / "map")
+    assert written == tmp_path / "map.npz" and written.is_file()
+    assert (os.stat(written).st_mode & 0o777) == 0o666 & ~_umask()
+
+
+def _umask():
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _saved(tmp_path, **changes):
+    path = tmp_path / "map.npz"
+    OccupancyGrid(SMALL).save(path)
+    with np.load(path) as data:
+        arrays = dict(data)
+    arrays.update(changes)
+    np.savez(path, **arrays)
+    return path
+
+
+@pytest.mark.parametrize("changes, match", [
+    (dict(rho_edges=SMALL.rho_edges[::-1]), "strictly increasing"),
+    (dict(theta_edges=np.r_[np.nan, SMALL.theta_edges[1:]]), "must be finite"),
+    (dict(theta_edges=np.linspace(-5, 5, 37)), "an azimuth range is at most 2"),
+    (dict(phi_edges=np.linspace(-3, 3, 19)), r"must lie in \[-pi/2, pi/2\]"),
+    (dict(log_odds=np.zeros((2, 2, 2), dtype=np.float32)), "log_odds has shape"),
+    (dict(probabilities=np.array([0.7, 0.4])), "probabilities must hold 4"),
+    (dict(probabilities=np.array([0.2, 0.4, 0.1, 0.9])), "p_hit must be in"),
+    (dict(spacing=np.array("spiral")), "spacing must be one of"),
+])
+def test_load_validates_like_new_input(tmp_path, changes, match):
+    path = _saved(tmp_path, **changes)
+    with pytest.raises(ValueError, match=match) as error:
+        OccupancyGrid.load(path)
+    assert str(path) in str(error.value)
+
+
+def test_a_file_without_the_arrays_names_the_file(tmp_path):
+    path = tmp_path / "other.npz"
+    np.savez(path, something=np.zeros(3))
+    with pytest.raises(ValueError, match=r"other\.npz is not a valid OccupancyGrid file"):
+        OccupancyGrid.load(path)
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "empty", "pickle"])
+def test_a_corrupt_file_is_one_error_type_naming_the_file(tmp_path, damage):
+    path = tmp_path / "map.npz"
+    OccupancyGrid(SMALL).save(path)
+    data = path.read_bytes()
+    if damage == "truncate":
+        path.write_bytes(data[: len(data) // 2])
+    elif damage == "garbage":
+        path.write_bytes(data[:40] + os.urandom(len(data) - 40))
+    elif damage == "empty":
+        path.write_bytes(b"")
+    else:
+        with np.load(path) as saved:
+            arrays = dict(saved)
+        arrays["probabilities"] = np.array([object()], dtype=object)
+        np.savez(path, **arrays)
+    with pytest.raises(ValueError, match="map.npz") as error:
+        OccupancyGrid.load(path)
+    assert type(error.value) is ValueError
+
+
+def test_a_missing_file_is_still_file_not_found(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        OccupancyGrid.load(tmp_path / "nothing.npz")
+
+
+# ---- unchecked inputs -----------------------------------------------------
+
+TWO_ROWS = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: lt.trace_cone(SMALL, TWO_ROWS, [1, 0, 0], 0.05), "origin must be one vector"),
+    (lambda: lt.trace_cone(SMALL, [0, 0, 0], TWO_ROWS, 0.05), "direction must be one vector"),
+    (lambda: lt.gaze_targets(OccupancyGrid(SMALL), TWO_ROWS, [1, 0, 0]),
+     "origin must be one vector"),
+    (lambda: lt.gaze_targets(OccupancyGrid(SMALL), [0, 0, 0], TWO_ROWS),
+     "direction must be one vector"),
+    (lambda: lt.fixation_probability(OccupancyGrid(SMALL), TWO_ROWS, [1, 0, 0]),
+     "origin must be one vector"),
+    (lambda: OccupancyGrid(SMALL).integrate(_points(), TWO_ROWS),
+     "sensor_origin must be one vector"),
+    (lambda: OccupancyGrid(SMALL).integrate(_points(), [0, 0, 0], max_range="far"),
+     "max_range must be a finite number"),
+    (lambda: lt.trace_cones(SMALL, TWO_ROWS, TWO_ROWS, [0.1, 0.1, 0.1]),
+     r"half_angles must be one number or one per cone \(2\)"),
+    (lambda: lt.trace_cones(SMALL, TWO_ROWS, TWO_ROWS, "wide"), "half_angles must be numbers"),
+])
+def test_inputs_that_were_silently_misread_are_refused(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def test_no_cones_is_no_result():
+    assert lt.trace_cones(SMALL, np.empty((0, 3)), np.empty((0, 3)), 0.1) == []
+
+
+def test_a_tiny_sigma_gives_finite_weights_not_nan():
+    cone = lt.trace_cone(SMALL, [0, 0, 0], [0, 0, 1], np.radians(5), n_rays=50, sigma=1e-6)
+    assert np.all(np.isfinite(cone.ray_weights)) and np.isclose(cone.ray_weights.sum(), 1.0)
+    assert np.all(np.isfinite(cone.weights))
+    assert cone.ray_weights[0] == cone.ray_weights.max()  # the ray nearest the axis
+
+
+def test_huge_and_tiny_directions_trace_like_unit_ones():
+    origin = np.array([0.5, 0.2, -0.1])
+    unit = np.array([0.3, -0.2, 0.9]) / np.linalg.norm([0.3, -0.2, 0.9])
+    reference = lt.trace(SMALL, origin, unit)
+    for scale in (1e200, 1e-200, 1e300):
+        other = lt.trace(SMALL, origin, unit * scale)
+        np.testing.assert_array_equal(other.cells, reference.cells)
+        np.testing.assert_allclose(other.t_exit, reference.t_exit, rtol=1e-14)
+
+
+# ---- units ----------------------------------------------------------------
+
+def test_a_half_angle_that_looks_like_degrees_warns():
+    with pytest.warns(lt.AngleUnitWarning, match=r"np\.radians\(1\)"):
+        lt.trace_cone(SMALL, [0, 0, 0], [0, 0, 1], 1.0, n_rays=20)
+
+
+def test_a_gaze_sized_half_angle_does_not_warn(recwarn):
+    lt.trace_cone(SMALL, [0, 0, 0], [0, 0, 1], np.radians(10), n_rays=20)
+    assert not [w for w in recwarn if issubclass(w.category, lt.AngleUnitWarning)]
