@@ -36,7 +36,8 @@ def test_a_grid_cannot_be_changed_in_place():
         grid.theta_edges[0] = 1.0  # read-only array
 
 
-@pytest.mark.parametrize("bad", [np.zeros((16, 36)), np.zeros((64, 360, 180)), np.zeros(16 * 36 * 18)])
+@pytest.mark.parametrize("bad", [np.zeros((16, 36)), np.zeros((64, 360, 180)),
+                                 np.zeros(16 * 36 * 18)])
 def test_log_odds_of_the_wrong_shape_is_refused(bad):
     bvm = OccupancyGrid(SMALL)
     with pytest.raises(ValueError, match="log_odds has shape"):
