@@ -1,23 +1,35 @@
 """The memory strategy for batches: how traced segments reach their arrays.
 
-A trace's length is unknown before it is traced, so every batch path decides
-where each ray's segments go without a second pass where it can:
+A trace's length is unknown before it is traced. Every path keeps a batch's
+peak memory close to its output: the output arrays, plus a scratch of
+bounded size.
 
 * **One thread** (``run_exact_serial``): rays are traced in order, each
   appending to numpy arrays (numpy, not Numba, allocates them: it asks the OS
-  for huge pages, which makes first touch cheaper). They start small and grow
-  to the batch's expected size when the kernel runs out of room.
-* **Many threads** (``run_exact_chunks`` via ``trace_regions``): one
-  contiguous chunk of rays per thread, each appending into its own region of
-  the arrays, sized from a sample of the batch; the regions are then packed
-  left in place (``exact.pack_chunks``).
-* **Fallback** (``run_exact_bounded``): if a chunk outgrows its region, a
-  bound pass (each ray's set-up only, no stepping) gives every ray an upper
-  bound, rays are traced into bounded slices, and a gather packs them.
+  for huge pages, which makes first touch cheaper). They start small (a small
+  batch must not pay for a 2 MB page it barely uses) and grow once to the
+  batch's expected size (a copy of the few rays' segments traced so far);
+  at the end they shrink in place to the exact size (``resized``), so the
+  result holds no spare room.
+* **Many threads** (``run_exact_parallel``): the rays are taken in waves. A
+  wave gives each thread a contiguous chunk of rays, sized from the segments
+  per ray so far to fill ``WAVE_FILL`` of a fixed scratch region
+  (``WAVE_SEGMENTS`` per thread), traced there (``exact.trace_chunks``); the
+  chunks are then copied, in parallel, to their final place in the output
+  (``exact.gather_chunks``), which therefore grows by exact counts. A chunk
+  that runs out of room stops before the ray that might not fit; the chunks
+  after it are traced again in the next wave (rare: the sizing leaves a
+  quarter spare). The output is allocated once from the first wave's
+  segments per ray with 3% to spare, grows in place if that was too little,
+  and shrinks to the exact size at the end.
 * **Baselines** (``run_csr``): a count pass, a prefix sum and a fill pass of
   one ``*_rows`` kernel.
-* **Cones** reuse per-Python-thread scratch arrays (``scratch_segments``):
-  their segments are read once, by the aggregation.
+* **Cones** (``trace_regions``): one region per chunk, sized by a bound pass
+  (``exact.bound_counts``: each ray's set-up, no stepping), so none can
+  overflow,
+  in per-Python-thread scratch that is reused between calls
+  (``scratch_segments``) and released when a cone needed more than
+  ``KEEP_SCRATCH_SEGMENTS``: their segments are read once, by the aggregation.
 
 Every path runs the same per-ray code and each ray writes only its own slice
 or region, so the output does not depend on the number of threads.
@@ -28,8 +40,11 @@ import threading
 import numba
 import numpy as np
 
+from . import _validate as validate
 from .kernels import exact as _exact
 from .traces import Traces
+
+SEGMENT_BYTES = 12 + 8 + 8  # a cell (3 x int32), t_enter, t_exit
 
 
 def segment_arrays(length):
@@ -62,22 +77,29 @@ def run_csr(rows, origins, directions, args):
     return Traces(offsets, *segments)
 
 
+def resized(array, length):
+    """``array`` with room for ``length`` rows: in place where the allocator can.
+
+    numpy's ``resize`` reallocates, which for a large array remaps its pages
+    instead of copying them, so neither growing nor shrinking holds two
+    copies at once. Growing this way zero-fills the new rows on one thread
+    and without huge pages (4x the first-touch time of ``np.empty``,
+    measured), so it is for shrinking and for rare growth. Only for arrays
+    this module allocated and never shared.
+    """
+    array.resize((length,) + array.shape[1:], refcheck=False)
+    return array
+
+
 def grown(array, capacity, used):
+    """Return a fresh (huge-page) array of ``capacity`` rows holding ``array[:used]``."""
     bigger = np.empty((capacity,) + array.shape[1:], dtype=array.dtype)
     bigger[:used] = array[:used]
     return bigger
 
 
 def run_exact_serial(grid, origins, directions, t_max, args):
-    """One appending pass.
-
-    The arrays are numpy's, allocated here rather than in the kernel: numpy asks
-    the OS for huge pages, which makes first touch of a large output several ns
-    per segment cheaper. They start small (a small batch must not pay for
-    zeroing a 2 MB page it barely uses); when the kernel runs out of room it
-    stops before the next ray, and they grow to the batch's expected size,
-    extrapolated from the rays so far with a fifth to spare.
-    """
+    """One appending pass (see the module docstring)."""
     n_rays = origins.shape[0]
     worst = int(_exact.max_segments(*grid.shape))
     size = int(_exact.scratch_size(*grid.shape))
@@ -96,21 +118,26 @@ def run_exact_serial(grid, origins, directions, t_max, args):
         used, row = int(used), int(row)
         if row < n_rays:
             expected = int(1.2 * used / max(row, 1) * n_rays)
+            validate.fits("origins", (capacity + expected) * SEGMENT_BYTES,
+                          f"tracing {n_rays:,} rays (about {expected:,} segments)")
             capacity = max(capacity + capacity // 2, expected) + 2 * worst
             cells, t_enter, t_exit = (grown(a, capacity, used) for a in (cells, t_enter, t_exit))
-    return Traces(offsets, cells[:used], t_enter[:used], t_exit[:used])
+    return Traces(offsets, *(resized(a, used) for a in (cells, t_enter, t_exit)))
 
 
 # Below this many rays a batch is traced on one thread even with parallel=True.
 PARALLEL_MIN_RAYS = 512
+# Scratch per thread for a wave of the parallel path, in segments (28 bytes each):
+# a few MB, so a wave's copy to the output reads from cache.
+WAVE_SEGMENTS = 1 << 17
+# A wave gives each thread about this share of its scratch, by the segments per
+# ray seen so far; a chunk that runs out of room ends the wave early.
+WAVE_FILL = 0.75
 
 
 def run_exact(grid, origins, directions, t_max, parallel):
-    """Trace with the exact method, serially or on all threads.
+    """Trace with the exact method, serially or on all threads (see the module docstring).
 
-    Serial: one appending pass. Parallel: one appending chunk per thread, then
-    packing; or, if a chunk outgrows its estimated room, a bound pass (set-up
-    only, no stepping), a trace pass into bounded slices and a gather.
     Every path runs the same per-ray code, so the outputs are identical.
     """
     args = grid.kernel_args()
@@ -119,76 +146,84 @@ def run_exact(grid, origins, directions, t_max, parallel):
     threads = numba.get_num_threads()
     if threads == 1 or origins.shape[0] < PARALLEL_MIN_RAYS:
         return run_exact_serial(grid, origins, directions, t_max, args)  # too few to split
-    chunked = run_exact_chunks(grid, origins, directions, t_max, args, threads)
-    if chunked is not None:
-        return chunked
-    return run_exact_bounded(grid, origins, directions, t_max, args)
+    return run_exact_parallel(grid, origins, directions, t_max, args, threads)
 
 
-def run_exact_chunks(grid, origins, directions, t_max, args, threads):
-    """Trace in parallel into fresh arrays, then pack the regions left in place.
+def run_exact_parallel(grid, origins, directions, t_max, args, threads):
+    """Waves of chunks traced into per-thread scratch, then gathered (see the module docstring)."""
+    n_rays = origins.shape[0]
+    offsets = np.empty(n_rays + 1, dtype=np.int64)
+    offsets[0] = 0
+    worst = int(_exact.max_segments(*grid.shape))
+    room = WAVE_SEGMENTS + worst  # every chunk fits at least one ray
+    regions = np.arange(threads + 1, dtype=np.int64) * room
+    loose = wave_scratch(threads * room)
+    output = None
+    used = 0
+    row = 0
+    per_chunk = 256  # rays per chunk in the first wave; then from the segments per ray
+    while row < n_rays:
+        stop = min(n_rays, row + threads * per_chunk)
+        starts = np.linspace(row, stop, threads + 1).astype(np.int64)
+        ends, reached = _exact.trace_chunks(starts, regions, origins, directions, t_max, args,
+                                            *loose, offsets, True)
+        # Keep the chunks in order up to the first that ran out of room (with
+        # the rays it traced); the rest of the wave is traced again next time.
+        short = np.flatnonzero(reached < starts[1:])
+        kept = int(short[0]) + 1 if short.size else threads
+        starts = np.append(starts[:kept], reached[kept - 1])
+        ends = ends[:kept]
+        traced = int(np.sum(ends - regions[:kept]))
+        if output is None or used + traced > output[0].shape[0]:
+            expected = int(1.03 * (used + traced) / (starts[-1] - 0) * n_rays) + threads * room
+            length = max(used + traced, expected)
+            validate.fits("origins", length * SEGMENT_BYTES,
+                          f"tracing {n_rays:,} rays (about {length:,} segments)")
+            if output is None:
+                output = segment_arrays(length)
+                _exact.touch_pages(*output)
+            else:
+                output = tuple(resized(a, length) for a in output)
+        _exact.gather_chunks(starts, regions, ends, offsets, *loose, used, *output)
+        used += traced
+        row = int(starts[-1])
+        per_chunk = max(1, int(WAVE_FILL * WAVE_SEGMENTS * row / max(used, 1)))
+    if output is None:
+        output = segment_arrays(0)
+    return Traces(offsets, *(resized(a, used) for a in output))
 
-    Uses :func:`trace_regions`; returns None if a chunk did not fit.
-    """
-    traced = trace_regions(grid, origins, directions, t_max, args, threads, segment_arrays)
-    if traced is None:
-        return None
-    starts, regions, ends, offsets, cells, t_enter, t_exit = traced
-    total = int(_exact.pack_chunks(starts, regions, ends, offsets, cells, t_enter, t_exit))
-    return Traces(offsets, cells[:total], t_enter[:total], t_exit[:total])
 
+def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays):
+    """Trace contiguous chunks of rays, ``starts[c]:starts[c + 1]``, each into its own region.
 
-def trace_regions(grid, origins, directions, t_max, args, chunks, segment_arrays):
-    """Trace ``chunks`` contiguous chunks of rays, each into its own region.
-
-    Each chunk is one ``prange`` iteration and appends to its region.
-
-    Regions are sized from a sample of the rays with a half to spare (all
-    rays' worst case when there are too few to sample); ``segment_arrays(n)``
+    Each chunk is one ``prange`` iteration and appends to its region; the
+    regions are sized by the rays' bounds (``exact.bound_counts``), so none
+    can overflow. ``segment_arrays(n)``
     provides (cells, t_enter, t_exit) with room for at least ``n`` segments.
     Returns ``(starts, regions, ends, offsets, cells, t_enter, t_exit)``:
     chunk ``c`` holds rays ``starts[c]:starts[c + 1]``, written from
     ``regions[c]`` to ``ends[c]``, and ray ``r``'s segments are
-    ``offsets[r]:offsets[r + 1]`` (gaps between regions). None if a chunk did
-    not fit.
+    ``offsets[r]:offsets[r + 1]`` (gaps between regions).
     """
     n_rays = origins.shape[0]
-    worst = int(_exact.max_segments(*grid.shape))
-    sampled = min(_exact.BLOCK, max(32, n_rays // 16))  # traced twice: keep it small
-    starts = np.linspace(0, n_rays, chunks + 1).astype(np.int64)
-    if n_rays <= sampled:
-        room = np.diff(starts) * worst
-    else:
-        sample = run_exact_serial(grid, origins[:sampled], directions[:sampled],
-                                   t_max[:sampled], args)
-        per_ray = sample.cells.shape[0] / sampled
-        room = (1.5 * per_ray * np.diff(starts)).astype(np.int64) + 4 * worst
-    regions = np.zeros(chunks + 1, dtype=np.int64)
-    np.cumsum(room, out=regions[1:])
+    cumulative = np.zeros(n_rays + 1, dtype=np.int64)
+    _exact.bound_counts(origins, directions, args, cumulative[1:])
+    np.cumsum(cumulative, out=cumulative)
+    regions = cumulative[starts]
     cells, t_enter, t_exit = segment_arrays(int(regions[-1]))
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0
-    ends, reached = _exact.trace_chunks(starts, regions, origins, directions, t_max, args,
-                                        cells, t_enter, t_exit, offsets)
-    if np.any(reached != starts[1:]):
-        return None
+    ends, _ = _exact.trace_chunks(starts, regions, origins, directions, t_max, args,
+                                  cells, t_enter, t_exit, offsets, False)
     return starts, regions, ends, offsets, cells, t_enter, t_exit
 
 
-def run_exact_bounded(grid, origins, directions, t_max, args):
-    """Parallel fallback: bound pass, prefix sum, trace pass, gather (no estimate needed)."""
-    bounds, lookups = _exact.bound_rows(origins, directions, args)
-    bound_offsets = csr_offsets(bounds)
-    loose = segment_arrays(int(bound_offsets[-1]))
-    offsets = csr_offsets(
-        _exact.trace_rows(origins, directions, t_max, args, lookups, bound_offsets, *loose)
-    )
-    segments = segment_arrays(int(offsets[-1]))
-    _exact.gather_rows(bound_offsets, offsets, *loose, *segments)
-    return Traces(offsets, *segments)
-
-
 _scratch = threading.local()
+
+
+# A cone's scratch is kept for the next call only up to this many segments
+# (28 bytes each, 112 MB); a larger one is released after its call.
+KEEP_SCRATCH_SEGMENTS = 1 << 22
 
 
 def scratch_segments(length):
@@ -197,10 +232,21 @@ def scratch_segments(length):
     A cone's segments are read once, by the aggregation; faulting in fresh
     pages for them each call took longer than tracing into them (1.0 of 2.0
     ms for a 1,000-ray cone, measured). Per Python thread, so concurrent
-    calls never share them.
+    calls never share them. Kept only up to ``KEEP_SCRATCH_SEGMENTS``: a
+    larger request gets arrays of its own, freed with its result.
     """
     held = getattr(_scratch, "segments", None)
     if held is None or held[0].shape[0] < length:
         held = segment_arrays(length + length // 4)
-        _scratch.segments = held
+        if length <= KEEP_SCRATCH_SEGMENTS:
+            _scratch.segments = held
+    return held
+
+
+def wave_scratch(length):
+    """Return this Python thread's scratch for the parallel path's waves (a bounded size)."""
+    held = getattr(_scratch, "waves", None)
+    if held is None or held[0].shape[0] < length:
+        held = segment_arrays(length)
+        _scratch.waves = held
     return held

@@ -24,6 +24,18 @@ def count(name, value):
     return int(value)
 
 
+# Bytes a grid holds per edge of an axis: the edges and, for the kernels, up to
+# three derived arrays (squares, sines and cosines, tangents and signs).
+_BYTES_PER_EDGE = 4 * 8
+
+
+def cell_count(name, value):
+    """Check a grid axis's cell count: a positive integer whose edges fit in memory."""
+    value = count(name, value)
+    fits(name, (value + 1) * _BYTES_PER_EDGE, f"a grid with {name}={value:,}")
+    return value
+
+
 def finite(name, value):
     try:
         number = float(value)
@@ -295,3 +307,46 @@ def log_odds(value, shape):
     if not np.all(np.isfinite(array)):
         raise ValueError("log_odds must be finite")
     return array
+
+
+def available_memory():
+    """Return the bytes this process can still allocate, or None if unknown.
+
+    The smaller of the system's ``MemAvailable`` and the cgroup's limit less
+    its usage.
+    """
+    limits = []
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    limits.append(int(line.split()[1]) * 1024)
+    except (OSError, ValueError, IndexError):
+        pass
+    for limit_file, usage_file in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                                   ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                                    "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            with open(limit_file) as limit, open(usage_file) as usage:
+                text = limit.read().strip()
+                if text != "max":
+                    limits.append(int(text) - int(usage.read().strip()))
+            break
+        except (OSError, ValueError):
+            continue
+    return min(limits) if limits else None
+
+
+def fits(name, nbytes, what):
+    """Raise ``MemoryError`` naming ``name`` before allocating ``nbytes`` that cannot fit.
+
+    Checked against :func:`available_memory`, so a request that is bound to
+    fail does so at once with a message, not after minutes of swapping or
+    with the process killed silently by the kernel.
+    """
+    free = available_memory()
+    if free is not None and nbytes > free:
+        raise MemoryError(
+            f"{name}: {what} needs about {nbytes / 2**30:.1f} GiB, but only "
+            f"{max(free, 0) / 2**30:.1f} GiB is available"
+        )

@@ -122,6 +122,9 @@ def _directions(axis, half_angle, n_rays, pattern):
         raise ValueError(f"n_rays must be a positive integer, got {n_rays!r}")
     if half_angle == 0.0 or n_rays == 1:
         return axis[None, :].copy(), np.zeros(1)
+    # The directions and their working arrays, then one trace each: at least 24
+    # bytes more per ray for the origins and bounds, and 28 per segment.
+    validate.fits("n_rays", n_rays * 256, f"a cone of {n_rays:,} rays")
     if pattern == "fibonacci":
         index = np.arange(n_rays)
         cos_angle = 1.0 - (1.0 - np.cos(half_angle)) * (index + 0.5) / n_rays
@@ -216,7 +219,7 @@ def aggregate_cells(grid, offsets, cells, t_enter, axis, weights, per_segment=Fa
     """Weighted cells of a cone's traces, ordered by first reach.
 
     ``offsets``, ``cells``, ``t_enter``: packed CSR, or the unpacked regions
-    of :func:`~logsph_trace.api.trace_regions` with ``chunks = (starts,
+    of :func:`~logsph_trace._batching.trace_regions` with ``chunks = (starts,
     regions)``. ``weights`` are per ray, or per segment with ``per_segment``;
     ``axis`` is a direction near the cone's axis; ``normalise`` scales the
     cell weights to sum to 1. The rays are aggregated in chunks (see
@@ -294,18 +297,12 @@ def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibona
     n_rays = directions.shape[0]
     origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
     no_limit = np.full(n_rays, np.inf)
-    traced = batching.trace_regions(grid, origins, directions, no_limit, grid.kernel_args(),
-                           len(_chunk_starts(n_rays)) - 1, batching.scratch_segments)
-    if traced is None:  # a chunk outgrew its estimated room
-        traces = trace_given_rays(grid, origin, directions)
-        cells, weights, t_first = aggregate_cells(grid, traces.offsets, traces.cells,
-                                                  traces.t_enter, directions[0], ray_weights)
-    else:
-        traces = None
-        starts, regions, _, offsets, segment_cells, t_enter, _ = traced
-        cells, weights, t_first = aggregate_cells(grid, offsets, segment_cells, t_enter,
-                                                  directions[0], ray_weights,
-                                                  chunks=(starts, regions))
+    starts = _chunk_starts(n_rays)
+    starts, regions, _, offsets, segment_cells, t_enter, _ = batching.trace_regions(
+        grid, origins, directions, no_limit, grid.kernel_args(), starts, batching.scratch_segments)
+    cells, weights, t_first = aggregate_cells(grid, offsets, segment_cells, t_enter, directions[0],
+                                              ray_weights, chunks=(starts, regions))
+    traces = None  # traced again if read: storing every segment cost more than aggregating
     return ConeTrace(cells, weights, t_first, directions, ray_weights, origin, grid, traces)
 
 

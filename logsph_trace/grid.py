@@ -30,7 +30,7 @@ def rho_edges_for(rho_min, rho_max, n_rho, spacing="log"):
     """
     rho_min = validate.finite("rho_min", rho_min)
     rho_max = validate.finite("rho_max", rho_max)
-    n_rho = validate.count("n_rho", n_rho)
+    n_rho = validate.cell_count("n_rho", n_rho)
     if spacing not in SPACINGS:
         raise ValueError(f"spacing must be one of {SPACINGS}, got {spacing!r}")
     if rho_min < 0:
@@ -99,8 +99,8 @@ class Grid:
                  theta_range=(-np.pi, np.pi), phi_range=(-np.pi / 2, np.pi / 2),
                  spacing="log"):
         rho_edges = rho_edges_for(rho_min, rho_max, n_rho, spacing)
-        n_theta = validate.count("n_theta", n_theta)
-        n_phi = validate.count("n_phi", n_phi)
+        n_theta = validate.cell_count("n_theta", n_theta)
+        n_phi = validate.cell_count("n_phi", n_phi)
         theta_min, theta_max = validate.pair_range("theta_range", theta_range)
         phi_min, phi_max = validate.pair_range("phi_range", phi_range)
         if validate.theta_width(theta_min, theta_max, "theta_range"):

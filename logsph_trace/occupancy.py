@@ -57,6 +57,9 @@ class OccupancyGrid:
 
     def __init__(self, grid, p_hit=0.7, p_miss=0.4, p_min=0.1192, p_max=0.971, log_odds=None):
         validate.grid(grid)
+        # log_odds, and in integrate a byte per cell per thread
+        validate.fits("grid", int(np.prod(grid.shape, dtype=np.float64))
+                      * (4 + numba.get_num_threads()), f"an occupancy map of {grid.shape} cells")
         self._grid = grid
         self.p_hit = validate.probability("p_hit", p_hit, 0.5, 1.0)
         self.p_miss = validate.probability("p_miss", p_miss, 0.0, 0.5)

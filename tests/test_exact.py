@@ -147,28 +147,32 @@ def test_property_any_ray_matches_oracle(name, origin, direction):
     assert_matches_oracle(grid, origin, direction, result, rel=TANGENT_SLIVER, scale=scene)
 
 
-def test_every_parallel_path_equals_the_serial_one():
-    # Chunked appending (many rays), its fallback when a chunk outgrows the room
-    # estimated from the first rays, and the bounded three-pass pipeline.
+@pytest.mark.parametrize("wave_segments", [1 << 17, 600])
+def test_every_parallel_path_equals_the_serial_one(monkeypatch, wave_segments):
+    # Waves of chunks gathered into the output: with a scratch of 600 segments
+    # per thread there are hundreds of waves, and chunks run out of room both
+    # at the start (the first rays miss, so segments per ray look like ~0) and
+    # later; the output's first estimate is then far too small and grows.
     from logsph_trace import _batching, _validate
 
+    monkeypatch.setattr(_batching, "WAVE_SEGMENTS", wave_segments)
     grid = GRIDS["log_full"]()
     rng = np.random.default_rng(41)
     origins, directions = random_rays(rng, grid, 6000)
-    # The first rays start far outside and miss: the estimate of segments per ray is ~0.
     origins[:256] = [0.0, 0.0, 100.0]
     directions[:256] = [0.0, 0.0, 1.0]
     serial = lt.trace_many(grid, origins, directions, parallel=False)
     o, d = _validate.rays(origins, directions)
     args = grid.kernel_args()
     far = np.full(len(o), np.inf)
-    assert _batching.run_exact_chunks(grid, o, d, far, args, threads=2) is None  # overflow
     results = [
         lt.trace_many(grid, origins, directions, parallel=True),
-        _batching.run_exact_chunks(grid, o[::-1].copy(), d[::-1].copy(), far, args, threads=3),
-        _batching.run_exact_bounded(grid, o, d, far, args),
+        _batching.run_exact_parallel(grid, o[::-1].copy(), d[::-1].copy(), far, args, threads=3),
+        _batching.run_exact_parallel(grid, o, d, far, args, threads=5),
     ]
     reversed_serial = lt.trace_many(grid, origins[::-1], directions[::-1], parallel=False)
     for result, want in zip(results, [serial, reversed_serial, serial]):
         for name in ("offsets", "cells", "t_enter", "t_exit"):
             np.testing.assert_array_equal(getattr(result, name), getattr(want, name))
+            array = getattr(result, name)
+            assert array.base is None  # owns exactly its data: no spare room kept alive

@@ -2,6 +2,7 @@
 
 import os
 
+import numba
 import numpy as np
 import pytest
 
@@ -240,3 +241,48 @@ def test_a_half_angle_that_looks_like_degrees_warns():
 def test_a_gaze_sized_half_angle_does_not_warn(recwarn):
     lt.trace_cone(SMALL, [0, 0, 0], [0, 0, 1], np.radians(10), n_rays=20)
     assert not [w for w in recwarn if issubclass(w.category, lt.AngleUnitWarning)]
+
+
+# ---- memory ---------------------------------------------------------------
+
+def test_a_parallel_batch_peaks_close_to_its_output():
+    import tracemalloc
+
+    from logsph_trace import _batching
+
+    grid = lt.Grid(0.1, 10.0, 64, 64, 64)
+    rng = np.random.default_rng(3)
+    origins = rng.uniform(-8, 8, (20000, 3))
+    directions = rng.normal(size=(20000, 3))
+    lt.trace_many(grid, origins[:1000], directions[:1000], parallel=True)  # compile, scratch
+    tracemalloc.start()
+    try:
+        traces = lt.trace_many(grid, origins, directions, parallel=True)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    arrays = (traces.offsets, traces.cells, traces.t_enter, traces.t_exit)
+    output = sum(a.nbytes for a in arrays)
+    inputs = origins.nbytes + directions.nbytes + 20000 * 8  # unit directions, t_max
+    threads = numba.get_num_threads()
+    wave = threads * (_batching.WAVE_SEGMENTS + 1000) * _batching.SEGMENT_BYTES
+    assert peak <= 1.1 * output + inputs + wave
+    assert all(a.base is None for a in arrays)  # no spare capacity kept alive by views
+
+
+def test_requests_that_cannot_fit_fail_before_allocating():
+    with pytest.raises(MemoryError, match=r"n_theta: a grid with n_theta=10,000,000,000"):
+        lt.Grid(0.3, 10, 64, 10**10, 180)
+    with pytest.raises(MemoryError, match="n_rays: a cone of 1,000,000,000 rays"):
+        lt.trace_cone(SMALL, [0, 0, 0], [0, 0, 1], 0.05, n_rays=10**9)
+    with pytest.raises(MemoryError, match=r"grid: an occupancy map of \(20000, 20000, 20000\)"):
+        OccupancyGrid(lt.Grid(0.3, 10, 20000, 20000, 20000))
+
+
+def test_a_large_cone_scratch_is_released(monkeypatch):
+    from logsph_trace import _batching
+
+    monkeypatch.setattr(_batching, "KEEP_SCRATCH_SEGMENTS", 100)
+    monkeypatch.setattr(_batching, "_scratch", type(_batching._scratch)())
+    lt.trace_cone(SMALL, [0, 0, 0], [0, 0, 1], 0.05, n_rays=300)
+    assert getattr(_batching._scratch, "segments", None) is None

@@ -590,51 +590,70 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
 # appending (``trace_span``). Each ray writes only its own slice or region, so
 # the output does not depend on the number of threads.
 @jit(parallel=True)
-def bound_rows(origins, directions, grid):
-    """Pass 1: an upper bound on each ray's segments, and its zone lookups for pass 2."""
+def bound_counts(origins, directions, grid, bounds):
+    """An upper bound on each ray's segments, into ``bounds``: its set-up only, no stepping.
+
+    A ray never writes more segments than its bound, so regions sized by the
+    bounds cannot overflow.
+    """
     n_rays = origins.shape[0]
-    bounds = np.empty(n_rays, dtype=np.int64)
-    lookups = np.empty((n_rays, 8), dtype=np.int64)
     no_times = np.empty((3, 0), dtype=np.float64)
     no_zones = np.empty((3, 0), dtype=np.int64)
     no_cells = np.empty((0, 3), dtype=np.int32)
     no_t = np.empty(0, dtype=np.float64)
-    for row in prange(n_rays):
-        bounds[row] = trace_ray(origins, directions, row, grid, np.inf, no_times, no_zones,
-                                lookups[row], no_cells, no_t, no_t, 0, BOUND)
-    return bounds, lookups
-
-
-@jit(parallel=True)
-def trace_rows(origins, directions, t_max, grid, lookups, bound_offsets, cells, t_enter, t_exit):
-    """Pass 2: each ray writes its segments from bound_offsets[r] on; returns the counts."""
-    n_rays = origins.shape[0]
-    counts = np.zeros(n_rays, dtype=np.int64)
-    size = grid_scratch_size(grid)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
-        times = np.empty((3, size), dtype=np.float64)
-        zones = np.empty((3, size), dtype=np.int64)
+        lookups = np.empty(8, dtype=np.int64)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            if bound_offsets[row + 1] == bound_offsets[row]:
-                continue  # misses the region
-            counts[row] = trace_ray(origins, directions, row, grid, t_max[row], times, zones,
-                                    lookups[row], cells, t_enter, t_exit, bound_offsets[row], TRACE)
-    return counts
+            bounds[row] = trace_ray(origins, directions, row, grid, np.inf, no_times, no_zones,
+                                    lookups, no_cells, no_t, no_t, 0, BOUND)
 
 
 @jit(parallel=True)
-def gather_rows(bound_offsets, offsets, loose_cells, loose_enter, loose_exit,
-                cells, t_enter, t_exit):
-    """Pass 3: copy each ray's segments from its bound slice to its final slice."""
-    for row in prange(offsets.shape[0] - 1):
-        source = bound_offsets[row]
-        target = offsets[row]
-        for seg in range(offsets[row + 1] - target):
-            cells[target + seg, 0] = loose_cells[source + seg, 0]
-            cells[target + seg, 1] = loose_cells[source + seg, 1]
-            cells[target + seg, 2] = loose_cells[source + seg, 2]
-            t_enter[target + seg] = loose_enter[source + seg]
-            t_exit[target + seg] = loose_exit[source + seg]
+def touch_pages(cells, t_enter, t_exit):
+    """Write one value per 4 KiB page of fresh output on all threads.
+
+    The kernel gives a page its memory on first write. Doing that for the
+    whole output at once, spread over the threads, is faster than having
+    each wave's copy fault its pages in bursts that contend for the kernel's
+    locks.
+    """
+    n = t_enter.shape[0]
+    step = 512  # float64 values per 4 KiB page; cells rows are 12 bytes, so 512 rows span 1.5
+    for block in prange((n + step - 1) // step):
+        row = block * step
+        cells[row, 0] = 0
+        cells[min(row + step // 2, n - 1), 0] = 0
+        t_enter[row] = 0.0
+        t_exit[row] = 0.0
+
+
+@jit(parallel=True)
+def gather_chunks(starts, regions, ends, offsets, loose_cells, loose_enter, loose_exit, first,
+                  cells, t_enter, t_exit):
+    """Copy each chunk's segments from its region to their final place, from ``first`` on.
+
+    Chunk c's segments ``regions[c]:ends[c]`` follow the chunks before it;
+    its rays' ``offsets`` (positions in the regions) become final positions.
+    Each chunk is one thread's, so the copy, and the first touch of the
+    output's pages, run in parallel.
+    """
+    n_chunks = starts.shape[0] - 1
+    targets = np.empty(n_chunks, dtype=np.int64)
+    target = first
+    for chunk in range(n_chunks):
+        targets[chunk] = target
+        target += ends[chunk] - regions[chunk]
+    for chunk in prange(n_chunks):
+        source = regions[chunk]
+        shift = targets[chunk] - source
+        for seg in range(ends[chunk] - source):
+            cells[targets[chunk] + seg, 0] = loose_cells[source + seg, 0]
+            cells[targets[chunk] + seg, 1] = loose_cells[source + seg, 1]
+            cells[targets[chunk] + seg, 2] = loose_cells[source + seg, 2]
+            t_enter[targets[chunk] + seg] = loose_enter[source + seg]
+            t_exit[targets[chunk] + seg] = loose_exit[source + seg]
+        for row in range(starts[chunk] + 1, starts[chunk + 1] + 1):
+            offsets[row] += shift
 
 
 @jit
@@ -667,48 +686,28 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
 
 @jit(parallel=True)
 def trace_chunks(starts, regions, origins, directions, t_max, grid, cells, t_enter, t_exit,
-                 offsets):
-    """Chunk c traces rays starts[c]..starts[c+1]-1 into regions[c]..regions[c+1]-1.
+                 offsets, limited):
+    """Chunk c traces rays starts[c]..starts[c+1]-1 into its region, from regions[c] on.
 
-    Returns per chunk the end of its segments and the first row it could not
-    fit (== starts[c+1] when the whole chunk fitted).
+    ``limited``: a chunk stops before a ray that might not fit below
+    ``regions[c + 1]``. Otherwise the regions must be sized by
+    ``bound_counts``: no ray writes past its bound, so none is checked.
+    Returns per chunk the end of its segments and the first row it did not
+    trace (``starts[c + 1]`` when it traced them all); ``offsets[row + 1]``
+    gets the end of ray ``row``'s segments (positions in the regions).
     """
     n_chunks = starts.shape[0] - 1
     size = grid_scratch_size(grid)
     ends = np.empty(n_chunks, dtype=np.int64)
     reached = np.empty(n_chunks, dtype=np.int64)
+    no_limit = np.iinfo(np.int64).max
     for chunk in prange(n_chunks):
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
         ends[chunk], reached[chunk] = trace_span(
             starts[chunk], starts[chunk + 1], origins, directions, t_max, grid, times, zones,
-            lookups, cells, t_enter, t_exit, offsets, regions[chunk], regions[chunk + 1],
+            lookups, cells, t_enter, t_exit, offsets, regions[chunk],
+            regions[chunk + 1] if limited else no_limit,
         )
     return ends, reached
-
-
-@jit
-def pack_chunks(starts, regions, ends, offsets, cells, t_enter, t_exit):
-    """Move each chunk's segments left to follow the previous chunk's, in place.
-
-    A chunk's target never lies after its source, so copying chunks in order,
-    each front to back, never overwrites a segment before it has moved. Chunk
-    0 stays where it is. Offsets are shifted to match; returns the total.
-    """
-    total = ends[0] - regions[0]
-    for chunk in range(1, starts.shape[0] - 1):
-        source = regions[chunk]
-        length = ends[chunk] - source
-        shift = source - total
-        if shift > 0:
-            for seg in range(length):
-                cells[total + seg, 0] = cells[source + seg, 0]
-                cells[total + seg, 1] = cells[source + seg, 1]
-                cells[total + seg, 2] = cells[source + seg, 2]
-                t_enter[total + seg] = t_enter[source + seg]
-                t_exit[total + seg] = t_exit[source + seg]
-            for row in range(starts[chunk] + 1, starts[chunk + 1] + 1):
-                offsets[row] -= shift
-        total += length
-    return total
