@@ -15,24 +15,105 @@ return ``inf``/``nan`` as IEEE says instead of raising, which the root solvers
 rely on (a ray parallel to a plane has its crossing at infinity).
 ``fastmath`` stays off: it may reorder the tie rules and NaN checks the
 exactness tests hold us to.
+
+**Threads and processes.** Numba runs ``prange`` loops on one of three
+threading layers. GNU OpenMP (``omp``, the usual one on Linux) aborts any
+child made by ``fork`` after a parallel call -- ``multiprocessing``'s default
+on Linux -- and ``workqueue`` aborts when two Python threads run parallel
+code at once. TBB (``tbb``) does neither, so the package depends on the
+``tbb`` wheel where it exists and asks Numba to prefer it
+(:func:`prefer_tbb`), unless ``NUMBA_THREADING_LAYER`` or
+``NUMBA_THREADING_LAYER_PRIORITY`` says otherwise. Where ``workqueue`` ends
+up in use anyway, every parallel kernel runs under one lock
+(:class:`Guarded`): concurrent calls then take turns instead of aborting.
 """
 
+import ctypes
 import os
+import sys
+import threading
 import types
+from pathlib import Path
 from typing import NamedTuple
 
 import numba
+
+
+def prefer_tbb():
+    """Make TBB Numba's first choice of threading layer, unless the user chose one.
+
+    pip's ``tbb`` wheel puts ``libtbb.so.12`` in ``<prefix>/lib``, which the
+    dynamic loader does not search inside a virtual environment; loading it
+    here by path lets Numba's TBB layer find it by name. Takes effect only if
+    no parallel code has run yet in this process.
+    """
+    if os.environ.get("NUMBA_THREADING_LAYER") or os.environ.get(
+            "NUMBA_THREADING_LAYER_PRIORITY"):
+        return
+    if sys.platform.startswith("linux"):
+        for prefix in dict.fromkeys((sys.prefix, sys.base_prefix)):
+            library = Path(prefix) / "lib" / "libtbb.so.12"
+            if library.is_file():
+                try:
+                    ctypes.CDLL(str(library), mode=ctypes.RTLD_GLOBAL)
+                except OSError:
+                    continue
+                break
+    numba.config.THREADING_LAYER_PRIORITY = ["tbb", "omp", "workqueue"]
+
+
+prefer_tbb()
+
+_PARALLEL_LOCK = threading.Lock()
+_layer = None
+
+
+def _needs_lock():
+    """Whether parallel calls must take turns: the workqueue layer, or not known yet."""
+    global _layer
+    if _layer is None:
+        try:
+            _layer = numba.threading_layer()
+        except ValueError:  # no parallel code has run yet: be safe for this call
+            return True
+    return _layer == "workqueue"
+
+
+class Guarded:
+    """A parallel kernel that takes a lock around each call where the layer needs it."""
+
+    def __init__(self, dispatcher):
+        self.dispatcher = dispatcher
+        self.__doc__ = dispatcher.__doc__
+        self.__name__ = dispatcher.__name__
+
+    def __call__(self, *args):
+        """Run the kernel (under the lock on the workqueue layer)."""
+        if _needs_lock():
+            with _PARALLEL_LOCK:
+                return self.dispatcher(*args)
+        return self.dispatcher(*args)
+
+    def __getattr__(self, name):
+        return getattr(self.dispatcher, name)
 
 CACHE = os.environ.get("LOGSPH_TRACE_CACHE", "1").strip() != "0"
 _OPTIONS = dict(cache=CACHE, nogil=True, error_model="numpy")
 
 
 def jit(func=None, **overrides):
-    """``numba.njit`` with the project's options (``parallel=True`` may be added)."""
+    """``numba.njit`` with the project's options (``parallel=True`` may be added).
+
+    A parallel kernel comes back :class:`Guarded`: callable from Python, not
+    from other kernels.
+    """
     options = dict(_OPTIONS, **overrides)
-    if func is None:
-        return lambda f: numba.njit(**options)(f)
-    return numba.njit(**options)(func)
+
+    def build(f):
+        dispatcher = numba.njit(**options)(f)
+        return Guarded(dispatcher) if options.get("parallel") else dispatcher
+
+    return build if func is None else build(func)
 
 
 class Twins(NamedTuple):

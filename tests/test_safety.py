@@ -286,3 +286,59 @@ def test_a_large_cone_scratch_is_released(monkeypatch):
     monkeypatch.setattr(_batching, "_scratch", type(_batching._scratch)())
     lt.trace_cone(SMALL, [0, 0, 0], [0, 0, 1], 0.05, n_rays=300)
     assert getattr(_batching._scratch, "segments", None) is None
+
+
+# ---- fork and threads -----------------------------------------------------
+
+_FORK_AFTER_PARALLEL = """
+import multiprocessing, numpy as np, logsph_trace as lt
+grid = lt.Grid(0.3, 10, 16, 36, 18)
+rng = np.random.default_rng(0)
+o, d = rng.normal(size=(4000, 3)), rng.normal(size=(4000, 3))
+want = lt.trace_many(grid, o, d, parallel=True).cells.shape[0]
+def child(seed):
+    return lt.trace_many(grid, o, d, parallel=True).cells.shape[0]
+with multiprocessing.get_context("fork").Pool(2) as pool:
+    assert pool.map(child, range(4)) == [want] * 4
+print("ok", __import__("numba").threading_layer())
+"""
+
+_THREADS_AT_ONCE = """
+import threading, numpy as np, logsph_trace as lt
+grid = lt.Grid(0.3, 10, 16, 36, 18)
+rng = np.random.default_rng(0)
+o, d = rng.normal(size=(4000, 3)), rng.normal(size=(4000, 3))
+want = lt.trace_many(grid, o, d, parallel=False).cells
+errors = []
+def work():
+    for _ in range(20):
+        if not np.array_equal(lt.trace_many(grid, o, d, parallel=True).cells, want):
+            errors.append("mismatch")
+threads = [threading.Thread(target=work) for _ in range(4)]
+for t in threads: t.start()
+for t in threads: t.join()
+assert not errors, errors
+print("ok", __import__("numba").threading_layer())
+"""
+
+
+def _run(script, **env):
+    import subprocess
+    import sys
+
+    environment = dict(os.environ, LOGSPH_TRACE_CACHE="1", **env)
+    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=120, env=environment)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork is POSIX only")
+def test_fork_after_a_parallel_call_works():
+    result = _run(_FORK_AFTER_PARALLEL)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.startswith("ok")
+
+
+def test_python_threads_may_call_in_parallel_on_the_workqueue_layer():
+    result = _run(_THREADS_AT_ONCE, NUMBA_THREADING_LAYER="workqueue")
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.strip() == "ok workqueue"
