@@ -6,15 +6,22 @@
     logsph-trace trace --rays rays.npy --out traces.npz
     logsph-trace bench [--quick]
 
-Errors (bad arguments, unreadable files, invalid geometry) are one line on
-stderr and exit status 2, never a traceback.
+Errors (bad arguments, unreadable or unwritable files, invalid geometry, not
+enough memory) are one line on stderr and exit status 2, never a traceback;
+Ctrl-C is one line and exit status 130. Angles are in degrees, in and out.
+Output files are written atomically: a failure leaves no partial file and
+keeps an older file of the same name.
 """
 
 import argparse
 import json
+import math
 import os
+import re
 import sys
+import threading
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +53,12 @@ def _grid(args):
 
     if getattr(args, "grid", None):
         args.rho, args.cells, args.spacing = _grid_spec(args.grid)
+    for option, values, full in (("--theta-range", args.theta_range, 360.0),
+                                 ("--phi-range", args.phi_range, 180.0)):
+        low, high = values
+        if max(abs(low), abs(high)) <= 2 * math.pi and high - low <= 2 * math.pi < full:
+            _warn(f"{option} {low:g} {high:g} is in degrees: a {high - low:.3g}-degree range. "
+                  f"Were those radians? The full range is {-full / 2:g} {full / 2:g}")
     theta = tuple(np.radians(args.theta_range))
     phi = tuple(np.radians(args.phi_range))
     return Grid(args.rho[0], args.rho[1], args.cells[0], args.cells[1], args.cells[2],
@@ -53,7 +66,9 @@ def _grid(args):
 
 
 def _add_grid_options(parser):
-    grid = parser.add_argument_group("grid (default: the paper's worked example, decimetres)")
+    grid = parser.add_argument_group(
+        "grid (default: the bounds and cells of the paper's worked example, decimetres; "
+        "add --spacing paper for its Eq. 3 spacing)")
     grid.add_argument("--grid", metavar="SPEC",
                       help="RHO_MIN,RHO_MAX,N_RHO,N_THETA,N_PHI[,SPACING] (spacing default log); "
                            "overrides --rho, --cells and --spacing")
@@ -61,12 +76,28 @@ def _add_grid_options(parser):
                       help="radial bounds (default 10 80)")
     grid.add_argument("--cells", nargs=3, type=int, default=[10, 36, 18],
                       metavar=("N_RHO", "N_THETA", "N_PHI"), help="cell counts (default 10 36 18)")
-    grid.add_argument("--spacing", choices=["log", "paper", "uniform"], default="paper",
-                      help="radial spacing (default paper)")
+    grid.add_argument("--spacing", choices=["log", "paper", "uniform"], default="log",
+                      help="radial spacing (default log, as for --grid)")
     grid.add_argument("--theta-range", nargs=2, type=float, default=[-180.0, 180.0],
                       metavar=("MIN", "MAX"), help="azimuth range in degrees")
     grid.add_argument("--phi-range", nargs=2, type=float, default=[-90.0, 90.0],
                       metavar=("MIN", "MAX"), help="elevation range in degrees")
+
+
+def _warn(message):
+    print(f"logsph-trace: warning: {message}", file=sys.stderr)
+
+
+def _read_csv(path):
+    """Read an (m, 6) CSV of numbers, with or without one header row."""
+    with open(path) as stream:
+        first = stream.readline()
+    try:
+        [float(field) for field in first.split(",")]
+        header = 0
+    except ValueError:
+        header = 1  # a row of column names
+    return np.loadtxt(path, delimiter=",", ndmin=2, skiprows=header)
 
 
 def _load_rays(path):
@@ -78,7 +109,7 @@ def _load_rays(path):
         if path.suffix == ".npy":
             rays = np.load(path, mmap_mode="r", allow_pickle=False)
         elif path.suffix == ".csv":
-            rays = np.loadtxt(path, delimiter=",", ndmin=2)  # no lazy CSV reader: read whole
+            rays = _read_csv(path)  # no lazy CSV reader: read whole
         else:
             raise CliError(f"rays file must be .npy or .csv, got {path.name}")
     except CliError:
@@ -99,6 +130,7 @@ def _trace_batch(grid, rays, out, progress):
     """
     import tempfile
 
+    from ._files import atomic_write
     from .trace import trace_many
 
     total = rays.shape[0]
@@ -109,7 +141,13 @@ def _trace_batch(grid, rays, out, progress):
         files = {name: open(Path(scratch) / f"{name}.bin", "wb") for name in layout}
         try:
             for first in range(0, total, CHUNK_RAYS):
-                chunk = trace_many(grid, np.ascontiguousarray(rays[first:first + CHUNK_RAYS]))
+                try:
+                    chunk = trace_many(grid,
+                                       np.ascontiguousarray(rays[first:first + CHUNK_RAYS]))
+                except ValueError as error:  # number the bad row in the file, not the chunk
+                    raise CliError(re.sub(r"\brow (\d+)",
+                                          lambda m: f"row {int(m.group(1)) + first}",
+                                          str(error))) from None
                 counts[first:first + len(chunk)] = chunk.counts
                 for name, handle in files.items():
                     getattr(chunk, name).tofile(handle)
@@ -133,7 +171,8 @@ def _trace_batch(grid, rays, out, progress):
             else:
                 arrays[name] = np.memmap(Path(scratch) / f"{name}.bin", dtype=dtype, mode="r",
                                          shape=(segments,) + tail)
-        np.savez(out, offsets=offsets, **arrays)
+        with atomic_write(out) as stream:
+            np.savez(stream, offsets=offsets, **arrays)
         del arrays  # release the maps before the scratch folder goes
     return total, segments, time.perf_counter() - start
 
@@ -163,6 +202,9 @@ def _print_trace(result, fmt, stream):
         for c, a, b in zip(result.cells, result.t_enter, result.t_exit)
     ]
     columns = [("i", "4d"), ("j", "4d"), ("k", "4d"), ("t_enter", "10.4f"), ("t_exit", "10.4f")]
+    if fmt == "table" and not rows:
+        stream.write("0 cells: the ray misses the grid\n")
+        return
     _print_rows(rows, columns, fmt, stream)
 
 
@@ -175,27 +217,52 @@ def _print_cone(cone, fmt, stream):
     _print_rows(rows, columns, fmt, stream)
 
 
+def _compiling_note(warm_up):
+    """Run ``warm_up()``; if it takes over half a second (kernels compiling), say so once."""
+    timer = threading.Timer(0.5, print, ("logsph-trace: compiling kernels (first run only, "
+                                         "about 15 s)...",), {"file": sys.stderr, "flush": True})
+    timer.start()
+    try:
+        warm_up()
+    finally:
+        timer.cancel()
+
+
 def cmd_trace(args):
     """``logsph-trace trace``: one ray, a gaze cone, or a batch file."""
+    from ._files import npz_path
     from .cone import trace_cone
-    from .trace import trace
+    from .trace import trace, trace_many
 
     grid = _grid(args)
+    cone = args.cone is not None
     if args.rays:
-        if args.origin or args.direction or args.cone:
+        if args.origin or args.direction or cone:
             raise CliError("--rays traces a batch: leave out --origin, --direction and --cone")
         if not args.out:
             raise CliError("--rays needs --out FILE.npz")
+        out = npz_path(args.out)
+        if not out.resolve().parent.is_dir():
+            raise CliError(f"--out: no such directory: {out.parent}")
         rays = _load_rays(args.rays)
-        count, segments, seconds = _trace_batch(grid, rays, args.out, progress=not args.quiet)
-        print(f"{count:,} rays, {segments:,} segments in {seconds:.2f} s -> {args.out}")
+        _compiling_note(lambda: trace_many(grid, np.zeros((1024, 3)), np.ones((1024, 3))))
+        progress = not args.quiet and sys.stderr.isatty()  # no \r frames in a log file
+        count, segments, seconds = _trace_batch(grid, rays, out, progress=progress)
+        print(f"{count:,} rays, {segments:,} segments in {seconds:.2f} s -> {out}")
         return 0
     if args.origin is None or args.direction is None:
         raise CliError("give --origin X Y Z and --direction X Y Z, or --rays FILE")
-    if args.cone:
-        cone = trace_cone(grid, args.origin, args.direction, np.radians(args.cone))
-        _print_cone(cone, args.format, sys.stdout)
+    if cone:
+        if not 0.0 <= args.cone < 90.0:
+            raise CliError(f"--cone must be a half-angle in [0, 90) degrees, got {args.cone:g}")
+        with warnings.catch_warnings():  # degrees were typed: radians came from np.radians
+            warnings.simplefilter("ignore")
+            _compiling_note(lambda: trace_cone(grid, args.origin, args.direction, 0.01,
+                                               n_rays=64))
+            result = trace_cone(grid, args.origin, args.direction, np.radians(args.cone))
+        _print_cone(result, args.format, sys.stdout)
     else:
+        _compiling_note(lambda: trace(grid, args.origin, args.direction))
         _print_trace(trace(grid, args.origin, args.direction), args.format, sys.stdout)
     return 0
 
@@ -321,7 +388,8 @@ def build_parser():
     trace.add_argument("--rays", metavar="FILE",
                        help="(m, 6) origin + direction: .npy (read a chunk at a time) or .csv")
     trace.add_argument("--out", metavar="FILE.npz", help="where a batch's traces go")
-    trace.add_argument("--quiet", action="store_true", help="no progress bar")
+    trace.add_argument("--quiet", action="store_true",
+                       help="no progress bar (there is none unless stderr is a terminal)")
     _add_grid_options(trace)
     trace.set_defaults(run=cmd_trace)
     bench = commands.add_parser("bench", help="the timing study (Fig. 4)")
@@ -337,15 +405,22 @@ def main(argv=None):
     args = parser.parse_args(argv)  # argparse reports its own errors in one line (exit 2)
     try:
         return args.run(args)
-    except (CliError, ValueError) as error:
-        print(f"logsph-trace: error: {error}", file=sys.stderr)
-        return 2
     except BrokenPipeError:
         # The reader (e.g. ``| head``) stopped reading: not our error, no traceback.
         # Point stdout at devnull so the interpreter's final flush cannot fail too.
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 1
+    except KeyboardInterrupt:
+        print("\nlogsph-trace: interrupted; no partial output was written", file=sys.stderr)
+        return 130
+    except MemoryError as error:
+        print(f"logsph-trace: error: not enough memory: {error or 'allocation failed'}",
+              file=sys.stderr)
+        return 2
+    except (CliError, ValueError, OSError) as error:
+        print(f"logsph-trace: error: {error}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -55,3 +55,14 @@ def random_rays(rng, grid, n_rays):
     origins = rng.uniform(-reach, reach, (n_rays, 3))
     directions = rng.normal(size=(n_rays, 3))
     return origins, directions
+
+
+def pytest_addoption(parser):
+    parser.addoption("--fuzz-rays", type=int, default=200_000,
+                     help="rays of tests/test_fuzz.py over all grid kinds together "
+                          "(the default is issue 11's 200,000; more for a longer fuzz)")
+
+
+@pytest.fixture(scope="session")
+def fuzz_rays(request):
+    return request.config.getoption("--fuzz-rays")

@@ -29,7 +29,8 @@ def run(*args, cwd=None):
 
 
 def test_trace_one_ray_in_each_format():
-    args = ["trace", "--origin", "0", "20", "20", "--direction", "-0.3", "-0.01", "0"]
+    args = ["trace", "--origin", "0", "20", "20", "--direction", "-0.3", "-0.01", "0",
+            "--spacing", "paper"]
     table = run(*args)
     assert table.returncode == 0, table.stderr
     assert len(table.stdout.strip().splitlines()) == 1 + 14  # header + the 14 cells of Fig. 3
@@ -73,7 +74,7 @@ def test_trace_a_batch_file(tmp_path, suffix):
     else:
         np.savetxt(path, rays, delimiter=",", fmt="%.17g")
     out = tmp_path / "traces.npz"
-    result = run("trace", "--rays", str(path), "--out", str(out), "--quiet")
+    result = run("trace", "--rays", str(path), "--out", str(out), "--quiet", "--spacing", "paper")
     assert result.returncode == 0, result.stderr
     saved = np.load(out)
     grid = lt.Grid.from_increments(10.0, 80.0, 10, d_theta=10.0, d_phi=10.0)
@@ -92,7 +93,7 @@ def test_trace_a_batch_file(tmp_path, suffix):
         (["trace", "--origin", "0", "0", "0", "--direction", "1", "0", "0", "--rho", "80", "10"],
          "rho_min must be < rho_max"),
         (["trace", "--origin", "0", "0", "0", "--direction", "1", "0", "0", "--cone", "95"],
-         "half_angle must be in [0, pi/2)"),
+         "--cone must be a half-angle in [0, 90) degrees, got 95"),
         (["trace", "--origin", "0", "0"], "expected 3 arguments"),
         (["fly"], "invalid choice"),
     ],
@@ -171,3 +172,143 @@ def test_batches_are_traced_chunk_by_chunk(tmp_path, monkeypatch):
     for name in ("offsets", "cells", "t_enter", "t_exit"):
         np.testing.assert_array_equal(saved[name], getattr(want, name))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.npz", "rays.npy"]  # no scratch left
+
+
+# ---- the error contract (issue 11) ------------------------------------------------
+
+RAY = ["--origin", "0", "20", "20", "--direction", "-0.3", "-0.01", "0"]
+
+
+def _rays_file(tmp_path, n=300, bad_row=None):
+    rng = np.random.default_rng(73)
+    rays = np.hstack([rng.uniform(-90, 90, (n, 3)), rng.normal(size=(n, 3))])
+    if bad_row is not None:
+        rays[bad_row, 0] = np.nan
+    path = tmp_path / "rays.npy"
+    np.save(path, rays)
+    return path, rays
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--grid", "0.3,10,64,10000000000,180"], "not enough memory: n_theta"),
+    (["--out", "no/such/dir/t.npz"], "--out: no such directory: no/such/dir"),
+])
+def test_os_and_memory_errors_are_one_line_exit_2(tmp_path, args, message):
+    path, _ = _rays_file(tmp_path)
+    result = run("trace", "--rays", str(path), "--out", str(tmp_path / "t.npz"), *args,
+                 cwd=tmp_path)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_an_unwritable_output_is_one_line_exit_2(tmp_path):
+    if os.geteuid() == 0:
+        pytest.skip("root may write into a read-only directory")
+    path, _ = _rays_file(tmp_path)
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        result = run("trace", "--rays", str(path), "--out", str(locked / "t.npz"))
+    finally:
+        locked.chmod(0o700)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+
+
+def test_a_bad_row_is_numbered_in_the_file(tmp_path, monkeypatch):
+    from logsph_trace import cli
+
+    monkeypatch.setattr(cli, "CHUNK_RAYS", 64)
+    path, _ = _rays_file(tmp_path, bad_row=150)
+    grid = lt.Grid(0.3, 10, 8, 8, 8)
+    with pytest.raises(cli.CliError, match=r"origins must be finite; row 150 "):
+        cli._trace_batch(grid, cli._load_rays(path), tmp_path / "t.npz", progress=False)
+
+
+def test_out_names_the_file_written_and_writes_it_atomically(tmp_path):
+    path, rays = _rays_file(tmp_path)
+    (tmp_path / "t.csv.npz").write_bytes(b"old")
+    result = run("trace", "--rays", str(path), "--out", str(tmp_path / "t.csv"))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().endswith(f"-> {tmp_path / 't.csv.npz'}")
+    assert np.load(tmp_path / "t.csv.npz")["offsets"].shape == (rays.shape[0] + 1,)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rays.npy", "t.csv.npz"]
+
+
+def test_an_interrupted_batch_keeps_the_old_output(tmp_path, monkeypatch, capsys):
+    from logsph_trace import cli
+
+    path, _ = _rays_file(tmp_path)
+    out = tmp_path / "t.npz"
+    out.write_bytes(b"old")
+
+    def interrupted(stream, **arrays):
+        stream.write(b"partial")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "savez", interrupted)
+    status = cli.main(["trace", "--rays", str(path), "--out", str(out), "--quiet"])
+    assert status == 130
+    assert "interrupted" in capsys.readouterr().err
+    assert out.read_bytes() == b"old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rays.npy", "t.npz"]
+
+
+def test_cone_0_traces_the_one_ray():
+    cone = run("trace", *RAY, "--cone", "0", "--format", "json")
+    ray = run("trace", *RAY, "--format", "json")
+    assert cone.returncode == 0, cone.stderr
+    assert [[r["i"], r["j"], r["k"]] for r in json.loads(cone.stdout)] == \
+        [[r["i"], r["j"], r["k"]] for r in json.loads(ray.stdout)]
+
+
+def test_a_wide_cone_in_degrees_does_not_warn_about_radians():
+    result = run("trace", *RAY, "--cone", "40", "--format", "json")
+    assert result.returncode == 0 and "Warning" not in result.stderr
+
+
+def test_grid_options_share_one_default_spacing():
+    by_grid = run("trace", "--grid", "10,80,10,36,18", *RAY, "--format", "json")
+    by_options = run("trace", "--rho", "10", "80", "--cells", "10", "36", "18", *RAY,
+                     "--format", "json")
+    assert by_grid.returncode == 0 and json.loads(by_grid.stdout) == json.loads(by_options.stdout)
+
+
+def test_a_csv_header_row_is_accepted(tmp_path):
+    _, rays = _rays_file(tmp_path)
+    path = tmp_path / "rays.csv"
+    np.savetxt(path, rays, delimiter=",", fmt="%.17g", header="ox,oy,oz,dx,dy,dz", comments="")
+    result = run("trace", "--rays", str(path), "--out", str(tmp_path / "t.npz"), "--spacing",
+                 "paper")
+    assert result.returncode == 0, result.stderr
+    grid = lt.Grid.from_increments(10.0, 80.0, 10, d_theta=10.0, d_phi=10.0)
+    saved = np.load(tmp_path / "t.npz")
+    np.testing.assert_array_equal(saved["offsets"], lt.trace_many(grid, rays).offsets)
+
+
+def test_no_progress_frames_in_a_log(tmp_path):
+    path, _ = _rays_file(tmp_path)
+    result = run("trace", "--rays", str(path), "--out", str(tmp_path / "t.npz"))
+    assert result.returncode == 0 and "\r" not in result.stderr
+
+
+def test_a_miss_says_0_cells():
+    result = run("trace", "--origin", "0", "500", "0", "--direction", "0", "1", "0")
+    assert result.returncode == 0 and result.stdout.startswith("0 cells")
+
+
+def test_angle_ranges_that_look_like_radians_warn():
+    result = run("trace", *RAY, "--theta-range", "-3.14", "3.14")
+    assert "--theta-range -3.14 3.14 is in degrees: a 6.28-degree range" in result.stderr
+
+
+def test_the_first_run_says_kernels_are_compiling(tmp_path):
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), MPLBACKEND="Agg")
+    result = subprocess.run([_entry_point(), "trace", *RAY], capture_output=True, text=True,
+                            cwd=REPO, env=env, timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert "compiling kernels" in result.stderr
+    again = subprocess.run([_entry_point(), "trace", *RAY], capture_output=True, text=True,
+                           cwd=REPO, env=env, timeout=600)
+    assert "compiling kernels" not in again.stderr
