@@ -161,7 +161,9 @@ def run_exact_parallel(grid, origins, directions, t_max, args, threads):
     output = None
     used = 0
     row = 0
-    per_chunk = 256  # rays per chunk in the first wave; then from the segments per ray
+    # Rays per chunk: in the first wave as if a ray had 64 segments (a batch of
+    # a few thousand rays is one wave), then from the segments per ray so far.
+    per_chunk = int(WAVE_FILL * WAVE_SEGMENTS / 64)
     while row < n_rays:
         stop = min(n_rays, row + threads * per_chunk)
         starts = np.linspace(row, stop, threads + 1).astype(np.int64)

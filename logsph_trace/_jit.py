@@ -47,10 +47,7 @@ def prefer_tbb():
     here by path lets Numba's TBB layer find it by name. Takes effect only if
     no parallel code has run yet in this process.
     """
-    if os.environ.get("NUMBA_THREADING_LAYER") or os.environ.get(
-            "NUMBA_THREADING_LAYER_PRIORITY"):
-        return
-    if sys.platform.startswith("linux"):
+    if sys.platform.startswith("linux"):  # also when the user picks tbb by name
         for prefix in dict.fromkeys((sys.prefix, sys.base_prefix)):
             library = Path(prefix) / "lib" / "libtbb.so.12"
             if library.is_file():
@@ -59,7 +56,9 @@ def prefer_tbb():
                 except OSError:
                     continue
                 break
-    numba.config.THREADING_LAYER_PRIORITY = ["tbb", "omp", "workqueue"]
+    if not (os.environ.get("NUMBA_THREADING_LAYER")
+            or os.environ.get("NUMBA_THREADING_LAYER_PRIORITY")):
+        numba.config.THREADING_LAYER_PRIORITY = ["tbb", "omp", "workqueue"]
 
 
 prefer_tbb()
