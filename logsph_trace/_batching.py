@@ -26,10 +26,11 @@ bounded size.
   one ``*_rows`` kernel.
 * **Cones** (``trace_regions``): one region per chunk, sized by a bound pass
   (``exact.bound_counts``: each ray's set-up, no stepping), so none can
-  overflow,
-  in per-Python-thread scratch that is reused between calls
-  (``scratch_segments``) and released when a cone needed more than
-  ``KEEP_SCRATCH_SEGMENTS``: their segments are read once, by the aggregation.
+  overflow; their segments are read once, by the aggregation.
+
+The waves' and the cones' scratch arrays are per Python thread and reused
+between calls (``scratch_segments``), unless one call needed more than
+``KEEP_SCRATCH_SEGMENTS``.
 
 Every path runs the same per-ray code and each ray writes only its own slice
 or region, so the output does not depend on the number of threads.
@@ -157,7 +158,7 @@ def run_exact_parallel(grid, origins, directions, t_max, args, threads):
     worst = int(_exact.max_segments(*grid.shape))
     room = WAVE_SEGMENTS + worst  # every chunk fits at least one ray
     regions = np.arange(threads + 1, dtype=np.int64) * room
-    loose = wave_scratch(threads * room)
+    loose = scratch_segments(threads * room, "waves")
     output = None
     used = 0
     row = 0
@@ -177,7 +178,7 @@ def run_exact_parallel(grid, origins, directions, t_max, args, threads):
         ends = ends[:kept]
         traced = int(np.sum(ends - regions[:kept]))
         if output is None or used + traced > output[0].shape[0]:
-            expected = int(1.03 * (used + traced) / (starts[-1] - 0) * n_rays) + threads * room
+            expected = int(1.03 * (used + traced) / int(starts[-1]) * n_rays) + threads * room
             length = max(used + traced, expected)
             validate.fits("origins", length * SEGMENT_BYTES,
                           f"tracing {n_rays:,} rays (about {length:,} segments)")
@@ -228,27 +229,19 @@ _scratch = threading.local()
 KEEP_SCRATCH_SEGMENTS = 1 << 22
 
 
-def scratch_segments(length):
-    """Segment arrays reused by this Python thread's cone traces, grown as needed.
+def scratch_segments(length, kind="segments"):
+    """Segment arrays reused by this Python thread, grown as needed; one set per ``kind``.
 
-    A cone's segments are read once, by the aggregation; faulting in fresh
-    pages for them each call took longer than tracing into them (1.0 of 2.0
-    ms for a 1,000-ray cone, measured). Per Python thread, so concurrent
-    calls never share them. Kept only up to ``KEEP_SCRATCH_SEGMENTS``: a
-    larger request gets arrays of its own, freed with its result.
+    ``"segments"``: a cone's (its segments are read once, by the aggregation;
+    faulting in fresh pages for them each call took longer than tracing into
+    them: 1.0 of 2.0 ms for a 1,000-ray cone, measured). ``"waves"``: the
+    parallel path's wave scratch. Per Python thread, so concurrent calls never
+    share them. Kept only up to ``KEEP_SCRATCH_SEGMENTS``: a larger request
+    (a grid of millions of sectors) gets arrays of its own, freed after use.
     """
-    held = getattr(_scratch, "segments", None)
+    held = getattr(_scratch, kind, None)
     if held is None or held[0].shape[0] < length:
         held = segment_arrays(length + length // 4)
         if length <= KEEP_SCRATCH_SEGMENTS:
-            _scratch.segments = held
-    return held
-
-
-def wave_scratch(length):
-    """Return this Python thread's scratch for the parallel path's waves (a bounded size)."""
-    held = getattr(_scratch, "waves", None)
-    if held is None or held[0].shape[0] < length:
-        held = segment_arrays(length)
-        _scratch.waves = held
+            setattr(_scratch, kind, held)
     return held

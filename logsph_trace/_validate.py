@@ -7,6 +7,7 @@ one, and the value -- before any kernel runs.
 """
 
 import math
+import warnings
 
 import numpy as np
 
@@ -244,8 +245,6 @@ def half_angle(half_angle, name="half_angle"):
     if not (np.isfinite(value) and 0.0 <= value < np.pi / 2):
         raise ValueError(f"{name} must be in [0, pi/2) radians, got {half_angle!r}")
     if value > DEGREES_LIKELY:
-        import warnings
-
         warnings.warn(
             f"{name}={value:g} rad is a {math.degrees(value):.1f}-degree cone; angles are in "
             f"radians (np.radians({value:g}) if you meant {value:g} degrees)",

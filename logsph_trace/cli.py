@@ -56,7 +56,7 @@ def _grid(args):
     for option, values, full in (("--theta-range", args.theta_range, 360.0),
                                  ("--phi-range", args.phi_range, 180.0)):
         low, high = values
-        if max(abs(low), abs(high)) <= 2 * math.pi and high - low <= 2 * math.pi < full:
+        if max(abs(low), abs(high)) <= 2 * math.pi and high - low <= 2 * math.pi:
             _warn(f"{option} {low:g} {high:g} is in degrees: a {high - low:.3g}-degree range. "
                   f"Were those radians? The full range is {-full / 2:g} {full / 2:g}")
     theta = tuple(np.radians(args.theta_range))

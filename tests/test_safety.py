@@ -342,3 +342,17 @@ def test_python_threads_may_call_in_parallel_on_the_workqueue_layer():
     result = _run(_THREADS_AT_ONCE, NUMBA_THREADING_LAYER="workqueue")
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.strip() == "ok workqueue"
+
+
+def test_a_large_wave_scratch_is_released(monkeypatch):
+    from logsph_trace import _batching
+
+    if numba.get_num_threads() < 2:
+        pytest.skip("the wave path runs on two threads or more")
+    monkeypatch.setattr(_batching, "KEEP_SCRATCH_SEGMENTS", 100)
+    monkeypatch.setattr(_batching, "_scratch", type(_batching._scratch)())
+    origins, directions = _points(2000), _points(2000, seed=1)
+    traced = lt.trace_many(SMALL, origins, directions, parallel=True)
+    assert getattr(_batching._scratch, "waves", None) is None
+    np.testing.assert_array_equal(
+        traced.cells, lt.trace_many(SMALL, origins, directions, parallel=False).cells)
