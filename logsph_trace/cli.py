@@ -220,7 +220,7 @@ def _print_cone(cone, fmt, stream):
 def _compiling_note(warm_up):
     """Run ``warm_up()``; if it takes over half a second (kernels compiling), say so once."""
     timer = threading.Timer(0.5, print, ("logsph-trace: compiling kernels (first run only, "
-                                         "about 15 s)...",), {"file": sys.stderr, "flush": True})
+                                         "10-25 s)...",), {"file": sys.stderr, "flush": True})
     timer.start()
     try:
         warm_up()
