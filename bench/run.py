@@ -2,12 +2,14 @@
 
     python -m bench.run                 # 128^3 cells, 100,000 rays (issue 2)
     python -m bench.run --rays 20000 --cells 64 --repeats 3
+    python -m bench.run --threads 1,2,4,8,16
 
 Prints a table and writes ``bench/results/traversal.json`` (and ``.md``).
 Machines are noisy: the two kernels are timed in alternating rounds of the
 same run and the figure that matters is their ratio. Each timing is the best
-of ``--repeats`` rounds of ``trace_many`` (count pass + fill pass, output
-arrays included).
+of ``--repeats`` rounds of ``trace_many`` (output arrays included). Both
+kernels batch the same way: one appending pass on one thread, waves of
+chunks on many; per thread count the table gives the time in each phase.
 """
 
 import argparse
@@ -24,7 +26,8 @@ import numba
 import numpy as np
 
 import logsph_trace as lt
-from bench.workload import best_time, make_box, make_grid, make_rays
+from bench.workload import make_box, make_grid, make_rays
+from logsph_trace import _batching
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -59,77 +62,113 @@ def first_call_times():
     }
 
 
-def measure(n_rays, cells, repeats, threads):
+def timed(call, repeats_so_far, best):
+    """Run ``call`` once with the phase clock on; keep it if it beats ``best``."""
+    with _batching.phase_times() as phases:
+        start = time.perf_counter()
+        result = call()
+        seconds = time.perf_counter() - start
+    if best is None or seconds < best["seconds"]:
+        best = {"seconds": seconds, "phases": dict(phases), "voxels": int(result.cells.shape[0])}
+    return best
+
+
+def measure(n_rays, cells, repeats, thread_counts):
     grid = make_grid(cells)
     box = make_box(cells)
     origins, directions = make_rays(n_rays)
     # Warm-up compiles (or loads) every kernel before anything is timed.
-    lt.trace_many(grid, origins[:10], directions[:10], parallel=False)
-    lt.trace_many(grid, origins[:10], directions[:10], parallel=True)
-    box.trace_many(origins[:10], directions[:10], parallel=False)
+    for parallel in (False, True):
+        lt.trace_many(grid, origins[:4096], directions[:4096], parallel=parallel)
+        box.trace_many(origins[:4096], directions[:4096], parallel=parallel)
 
-    timings = {"exact": np.inf, "amanatides_woo": np.inf, "exact_parallel": np.inf}
-    voxels = {}
-    for _ in range(repeats):  # alternate the kernels so both see the same noise
-        numba.set_num_threads(1)
-        seconds, traces = best_time(
-            lambda: lt.trace_many(grid, origins, directions, parallel=False), 1)
-        timings["exact"] = min(timings["exact"], seconds)
-        voxels["exact"] = traces.cells.shape[0]
-        seconds, traces = best_time(lambda: box.trace_many(origins, directions, parallel=False), 1)
-        timings["amanatides_woo"] = min(timings["amanatides_woo"], seconds)
-        voxels["amanatides_woo"] = traces.cells.shape[0]
-        numba.set_num_threads(threads)
-        seconds, traces = best_time(
-            lambda: lt.trace_many(grid, origins, directions, parallel=True), 1)
-        timings["exact_parallel"] = min(timings["exact_parallel"], seconds)
-    numba.set_num_threads(threads)
+    most = numba.get_num_threads()
+    buffers = lt.TraceBuffers()  # the robot's case: the same arrays every frame
+    lt.trace_many(grid, origins, directions, out=buffers)
+    runs = {}
+    for _ in range(repeats):  # alternate everything so that all see the same noise
+        for threads in thread_counts:
+            numba.set_num_threads(min(threads, most))
+            parallel = threads > 1
+            for name, call in (
+                ("exact", lambda: lt.trace_many(grid, origins, directions, parallel=parallel)),
+                ("amanatides_woo", lambda: box.trace_many(origins, directions, parallel=parallel)),
+                ("exact_buffers", lambda: lt.trace_many(grid, origins, directions,
+                                                        parallel=parallel, out=buffers)),
+            ):
+                runs[name, threads] = timed(call, repeats, runs.get((name, threads)))
+    numba.set_num_threads(most)
 
-    def summary(name):
-        seconds = timings[name]
+    def summary(name, threads):
+        run = runs[name, threads]
+        one = runs[name, 1]["seconds"]
         return {
-            "seconds": seconds,
-            "voxels": int(voxels[name]),
-            "voxels_per_ray": voxels[name] / n_rays,
-            "ns_per_voxel": seconds / voxels[name] * 1e9,
-            "rays_per_second": n_rays / seconds,
+            "threads": threads,
+            "seconds": run["seconds"],
+            "voxels": run["voxels"],
+            "voxels_per_ray": run["voxels"] / n_rays,
+            "ns_per_voxel": run["seconds"] / run["voxels"] * 1e9,
+            "rays_per_second": n_rays / run["seconds"],
+            "speedup_over_one_thread": one / run["seconds"],
+            "phases_s": run["phases"],
+            # What runs on one thread whatever the thread count: Python between
+            # the kernels and the final shrink, against the one-thread time.
+            "serial_part_of_one_thread": (run["phases"].get("other", 0.0)
+                                          + run["phases"].get("shrink", 0.0)) / one,
         }
 
-    exact, reference = summary("exact"), summary("amanatides_woo")
+    exact = [summary("exact", t) for t in thread_counts]
+    reference = [summary("amanatides_woo", t) for t in thread_counts]
+    reused = [summary("exact_buffers", t) for t in thread_counts]
     return {
         "rays": n_rays,
         "cells_per_axis": cells,
         "repeats": repeats,
         "exact": exact,
         "amanatides_woo": reference,
-        "exact_over_amanatides_woo_per_voxel": exact["ns_per_voxel"] / reference["ns_per_voxel"],
-        "parallel": {
-            "threads": threads,
-            "seconds": timings["exact_parallel"],
-            "speedup_over_serial": timings["exact"] / timings["exact_parallel"],
-        },
+        "exact_into_reused_buffers": reused,
+        "exact_over_amanatides_woo_per_voxel": [
+            e["ns_per_voxel"] / r["ns_per_voxel"] for e, r in zip(exact, reference)],
     }
 
 
+PHASES = ("trace", "allocate", "gather", "shrink", "other")
+
+
 def table(result, first_call):
-    exact, aw, par = result["exact"], result["amanatides_woo"], result["parallel"]
+    exact, aw = result["exact"][0], result["amanatides_woo"][0]
     lines = [
         f"{result['rays']:,} random rays, {result['cells_per_axis']}^3 cells, "
-        f"best of {result['repeats']}, single thread unless noted",
+        f"best of {result['repeats']} alternated rounds; both kernels write the same output "
+        "(cell, t_enter, t_exit per voxel) in one appending pass",
         "",
-        "| kernel | voxels/ray | ns/voxel | rays/s |",
+        "| kernel, 1 thread | voxels/ray | ns/voxel | rays/s |",
         "|---|---:|---:|---:|",
         f"| exact log-spherical | {exact['voxels_per_ray']:.1f} | {exact['ns_per_voxel']:.1f} "
         f"| {exact['rays_per_second']:,.0f} |",
         f"| Amanatides-Woo (Cartesian) | {aw['voxels_per_ray']:.1f} | {aw['ns_per_voxel']:.1f} "
         f"| {aw['rays_per_second']:,.0f} |",
         "",
-        f"exact / Amanatides-Woo per voxel: {result['exact_over_amanatides_woo_per_voxel']:.2f}x",
-        f"exact, {par['threads']} threads: {par['speedup_over_serial']:.2f}x "
-        "the single-thread speed",
+        f"exact / Amanatides-Woo per voxel, 1 thread: "
+        f"{result['exact_over_amanatides_woo_per_voxel'][0]:.2f}x",
+        "",
+        "| kernel | threads | ms | speed-up | " + " | ".join(f"{p} ms" for p in PHASES)
+        + " | serial part |",
+        "|---|---:|---:|---:|" + "---:|" * len(PHASES) + "---:|",
     ]
+    for name, rows in (("exact", result["exact"]), ("Amanatides-Woo", result["amanatides_woo"]),
+                       ("exact, out=TraceBuffers", result["exact_into_reused_buffers"])):
+        for row in rows:
+            phases = " | ".join(f"{row['phases_s'].get(p, 0.0) * 1e3:.1f}" for p in PHASES)
+            lines.append(f"| {name} | {row['threads']} | {row['seconds'] * 1e3:.1f} "
+                         f"| {row['speedup_over_one_thread']:.2f}x | {phases} "
+                         f"| {100 * row['serial_part_of_one_thread']:.1f}% |")
+    lines += ["", "speed-up: over the same call on 1 thread; serial part: the phases that run "
+              "on one thread whatever the thread count (shrink, other), as a share of the "
+              "one-thread time; out=TraceBuffers: the same arrays reused every call"]
     if first_call:
         lines += [
+            "",
             f"import + first trace: cold cache {first_call['cold_import_and_first_trace_s']:.1f} s "
             "(+ parallel build: "
             f"{first_call['cold_import_first_trace_and_first_parallel_batch_s']:.1f} s "
@@ -143,13 +182,15 @@ def main(argv=None):
     parser.add_argument("--rays", type=int, default=100_000)
     parser.add_argument("--cells", type=int, default=128)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", default=f"1,{numba.get_num_threads()}",
+                        help="comma-separated thread counts (default: 1 and all)")
     parser.add_argument("--no-first-call", action="store_true",
                         help="skip the cold/warm start timing")
     parser.add_argument("--out", type=Path, default=RESULTS / "traversal.json")
     args = parser.parse_args(argv)
 
-    result = measure(args.rays, args.cells, args.repeats, args.threads)
+    thread_counts = sorted({1, *(int(t) for t in args.threads.split(","))})
+    result = measure(args.rays, args.cells, args.repeats, thread_counts)
     first_call = None if args.no_first_call else first_call_times()
     text = table(result, first_call)
     print(text)

@@ -11,7 +11,7 @@ from .cone import ConeTrace, trace_cone, trace_cones
 from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
 from .occupancy import GazeTargets, OccupancyGrid, fixation_probability, gaze_targets
 from .trace import METHODS, trace, trace_many
-from .traces import Trace, Traces
+from .traces import Trace, TraceBuffers, Traces
 
 __all__ = [
     "AngleUnitWarning",
@@ -21,6 +21,7 @@ __all__ = [
     "METHODS",
     "OccupancyGrid",
     "Trace",
+    "TraceBuffers",
     "Traces",
     "cartesian_to_spherical",
     "fixation_probability",

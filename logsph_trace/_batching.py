@@ -4,14 +4,14 @@ A trace's length is unknown before it is traced. Every path keeps a batch's
 peak memory close to its output: the output arrays, plus a scratch of
 bounded size.
 
-* **One thread** (``run_exact_serial``): rays are traced in order, each
+* **One thread** (``run_serial``): rays are traced in order, each
   appending to numpy arrays (numpy, not Numba, allocates them: it asks the OS
   for huge pages, which makes first touch cheaper). They start small (a small
   batch must not pay for a 2 MB page it barely uses) and grow once to the
   batch's expected size (a copy of the few rays' segments traced so far);
   at the end they shrink in place to the exact size (``resized``), so the
   result holds no spare room.
-* **Many threads** (``run_exact_parallel``): the rays are taken in waves. A
+* **Many threads** (``run_waves``): the rays are taken in waves. A
   wave gives each thread a contiguous chunk of rays, sized from the segments
   per ray so far to fill ``WAVE_FILL`` of a fixed scratch region
   (``WAVE_SEGMENTS`` per thread), traced there (``exact.trace_chunks``); the
@@ -22,8 +22,10 @@ bounded size.
   quarter spare). The output is allocated once from the first wave's
   segments per ray with 3% to spare, grows in place if that was too little,
   and shrinks to the exact size at the end.
-* **Baselines** (``run_csr``): a count pass, a prefix sum and a fill pass of
-  one ``*_rows`` kernel.
+* The exact method and the Amanatides-Woo baseline run on both (their
+  ``*_span`` and ``*_chunks`` kernels), so their timings compare like for
+  like. The paper's baselines (``run_csr``) take a count pass, a prefix sum
+  and a fill pass of one ``*_rows`` kernel.
 * **Cones** (``trace_regions``): one region per chunk, sized by a bound pass
   (``exact.bound_counts``: each ray's set-up, no stepping), so none can
   overflow; their segments are read once, by the aggregation.
@@ -36,7 +38,9 @@ Every path runs the same per-ray code and each ray writes only its own slice
 or region, so the output does not depend on the number of threads.
 """
 
+import contextlib
 import threading
+import time
 
 import numba
 import numpy as np
@@ -46,6 +50,33 @@ from .kernels import exact as _exact
 from .traces import Traces
 
 SEGMENT_BYTES = 12 + 8 + 8  # a cell (3 x int32), t_enter, t_exit
+
+
+_phases = threading.local()
+
+
+@contextlib.contextmanager
+def phase_times():
+    """Yield a dict of the seconds each batch phase took in this block (a benchmark hook).
+
+    The phases are "trace", "allocate", "gather", "shrink" and "other"
+    (Python between the kernels); only this thread's calls are counted.
+    """
+    times = {}
+    _phases.times = times
+    try:
+        yield times
+    finally:
+        _phases.times = None
+
+
+def _lap(phase, since):
+    """Add the time since ``since`` to ``phase`` (when ``phase_times`` is on); return now."""
+    now = time.perf_counter()
+    times = getattr(_phases, "times", None)
+    if times is not None:
+        times[phase] = times.get(phase, 0.0) + now - since
+    return now
 
 
 def segment_arrays(length):
@@ -99,31 +130,44 @@ def grown(array, capacity, used):
     return bigger
 
 
-def run_exact_serial(grid, origins, directions, t_max, args):
-    """One appending pass (see the module docstring)."""
-    n_rays = origins.shape[0]
-    worst = int(_exact.max_segments(*grid.shape))
-    size = int(_exact.scratch_size(*grid.shape))
-    times = np.empty((3, size), dtype=np.float64)
-    zones = np.empty((3, size), dtype=np.int64)
-    lookups = np.empty(8, dtype=np.int64)
-    offsets = np.empty(n_rays + 1, dtype=np.int64)
+def run_serial(span, inputs, n_rays, worst, buffers=None):
+    """One appending pass (see the module docstring) of a ``*_span`` kernel.
+
+    ``span(first, last, *inputs, cells, t_enter, t_exit, offsets, used, limit)``
+    traces rays in order, appending from ``used``, and stops before a ray
+    that might not fit below ``limit`` (``worst`` segments per ray).
+    ``buffers``: a ``TraceBuffers`` to write into (the result is views of it).
+    """
+    start = time.perf_counter()
+    offsets = np.empty(n_rays + 1, dtype=np.int64) if buffers is None else \
+        buffers.ray_offsets(n_rays)
     offsets[0] = 0
     capacity = 2 * worst + 32 * min(n_rays, _exact.BLOCK)
-    cells, t_enter, t_exit = segment_arrays(capacity)
+    held = None if buffers is None else buffers.segments()
+    if held is not None and held[0].shape[0] >= capacity:
+        cells, t_enter, t_exit = held
+        capacity = cells.shape[0]
+    else:
+        cells, t_enter, t_exit = segment_arrays(capacity)
     used = 0
     row = 0
     while row < n_rays:
-        used, row = _exact.trace_span(row, n_rays, origins, directions, t_max, args, times, zones,
-                                      lookups, cells, t_enter, t_exit, offsets, used, capacity)
+        start = _lap("allocate", start)
+        used, row = span(row, n_rays, *inputs, cells, t_enter, t_exit, offsets, used, capacity)
         used, row = int(used), int(row)
+        start = _lap("trace", start)
         if row < n_rays:
             expected = int(1.2 * used / max(row, 1) * n_rays)
             validate.fits("origins", (capacity + expected) * SEGMENT_BYTES,
                           f"tracing {n_rays:,} rays (about {expected:,} segments)")
             capacity = max(capacity + capacity // 2, expected) + 2 * worst
             cells, t_enter, t_exit = (grown(a, capacity, used) for a in (cells, t_enter, t_exit))
-    return Traces(offsets, *(resized(a, used) for a in (cells, t_enter, t_exit)))
+    if buffers is not None:
+        buffers.keep((cells, t_enter, t_exit))
+        return Traces(offsets, cells[:used], t_enter[:used], t_exit[:used])
+    traces = Traces(offsets, *(resized(a, used) for a in (cells, t_enter, t_exit)))
+    _lap("shrink", start)
+    return traces
 
 
 # Below this many rays a batch is traced on one thread even with parallel=True.
@@ -136,64 +180,130 @@ WAVE_SEGMENTS = 1 << 17
 WAVE_FILL = 0.75
 
 
-def run_exact(grid, origins, directions, t_max, parallel):
-    """Trace with the exact method, serially or on all threads (see the module docstring).
+def run_batch(span, span_inputs, chunks, chunk_inputs, n_rays, worst, parallel, buffers=None):
+    """One appending pass (``run_serial``) or waves on all threads (``run_waves``).
 
-    Every path runs the same per-ray code, so the outputs are identical.
+    Both run the same per-ray code, so the outputs are identical. A batch
+    too small to split, or one thread, takes the serial pass.
     """
+    threads = numba.get_num_threads() if parallel else 1
+    if threads == 1 or n_rays < PARALLEL_MIN_RAYS:
+        return run_serial(span, span_inputs, n_rays, worst, buffers)
+    return run_waves(chunks, chunk_inputs, n_rays, worst, threads, buffers)
+
+
+def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
+    """Trace with the exact method, serially or on all threads (see the module docstring)."""
     args = grid.kernel_args()
-    if not parallel:
-        return run_exact_serial(grid, origins, directions, t_max, args)
-    threads = numba.get_num_threads()
-    if threads == 1 or origins.shape[0] < PARALLEL_MIN_RAYS:
-        return run_exact_serial(grid, origins, directions, t_max, args)  # too few to split
-    return run_exact_parallel(grid, origins, directions, t_max, args, threads)
+    size = int(_exact.scratch_size(*grid.shape))
+    scratch = (np.empty((3, size), dtype=np.float64), np.empty((3, size), dtype=np.int64),
+               np.empty(8, dtype=np.int64))
+    inputs = (origins, directions, t_max, args)
+    return run_batch(_exact.trace_span, inputs + scratch, _exact.trace_chunks, inputs,
+                     origins.shape[0], int(_exact.max_segments(*grid.shape)), parallel, buffers)
 
 
 def run_exact_parallel(grid, origins, directions, t_max, args, threads):
-    """Waves of chunks traced into per-thread scratch, then gathered (see the module docstring)."""
-    n_rays = origins.shape[0]
-    offsets = np.empty(n_rays + 1, dtype=np.int64)
+    """Trace with the exact method in waves of ``threads`` chunks (tests pick the count)."""
+    return run_waves(_exact.trace_chunks, (origins, directions, t_max, args), origins.shape[0],
+                     int(_exact.max_segments(*grid.shape)), threads)
+
+
+def run_waves(chunks, inputs, n_rays, worst, threads, buffers=None):
+    """Waves of chunks traced into per-thread scratch, then gathered (see the module docstring).
+
+    ``chunks(starts, regions, *inputs, cells, t_enter, t_exit, offsets, True,
+    *head, head_start)`` traces chunk ``c``'s rays into its region, stopping
+    before a ray that might not fit (``worst`` segments per ray), chunk 0 into
+    ``head`` from ``head_start`` on when that is >= 0; it returns per chunk
+    the end of its segments and the first row it did not trace.
+    ``buffers``: a ``TraceBuffers`` to write into (the result is views of it).
+    """
+    start = time.perf_counter()
+    offsets = np.empty(n_rays + 1, dtype=np.int64) if buffers is None else \
+        buffers.ray_offsets(n_rays)
     offsets[0] = 0
-    worst = int(_exact.max_segments(*grid.shape))
+    in_place = buffers is None  # buffers may be viewed by an earlier result: never resized
     room = WAVE_SEGMENTS + worst  # every chunk fits at least one ray
     regions = np.arange(threads + 1, dtype=np.int64) * room
     loose = scratch_segments(threads * room, "waves")
-    output = None
+    output = None if buffers is None else buffers.segments()
     used = 0
     row = 0
     # Rays per chunk: in the first wave as if a ray had 64 segments (a batch of
     # a few thousand rays is one wave), then from the segments per ray so far.
-    per_chunk = int(WAVE_FILL * WAVE_SEGMENTS / 64)
+    per_chunk = max(1, int(WAVE_FILL * WAVE_SEGMENTS / 64))
     while row < n_rays:
         stop = min(n_rays, row + threads * per_chunk)
         starts = np.linspace(row, stop, threads + 1).astype(np.int64)
-        ends, reached = _exact.trace_chunks(starts, regions, origins, directions, t_max, args,
-                                            *loose, offsets, True)
+        # After the first wave the output exists, and chunk 0 writes its rays
+        # straight to their place there: 1/threads of the copy saved.
+        direct = output is not None
+        if direct and used + room > output[0].shape[0]:
+            output = grown_output(output, used + room, n_rays, row, used, threads * room,
+                                  in_place, used)
+        start = _lap("other", start)
+        head = output if direct else loose
+        ends, reached = chunks(starts, regions, *inputs, *loose, offsets, True, *head,
+                               used if direct else -1)
+        start = _lap("trace", start)
         # Keep the chunks in order up to the first that ran out of room (with
         # the rays it traced); the rest of the wave is traced again next time.
         short = np.flatnonzero(reached < starts[1:])
         kept = int(short[0]) + 1 if short.size else threads
         starts = np.append(starts[:kept], reached[kept - 1])
         ends = ends[:kept]
-        traced = int(np.sum(ends - regions[:kept]))
+        spans = ends - regions[:kept]
+        if direct:
+            spans[0] = ends[0] - used
+        traced = int(np.sum(spans))
+        placed = used + (int(spans[0]) if direct else 0)  # segments already in the output
         if output is None or used + traced > output[0].shape[0]:
-            expected = int(1.03 * (used + traced) / int(starts[-1]) * n_rays) + threads * room
-            length = max(used + traced, expected)
-            validate.fits("origins", length * SEGMENT_BYTES,
-                          f"tracing {n_rays:,} rays (about {length:,} segments)")
-            if output is None:
-                output = segment_arrays(length)
-                _exact.touch_pages(*output)
-            else:
-                output = tuple(resized(a, length) for a in output)
-        _exact.gather_chunks(starts, regions, ends, offsets, *loose, used, *output)
+            start = _lap("other", start)
+            output = grown_output(output, used + traced, n_rays, int(starts[-1]), used + traced,
+                                  threads * room, in_place, placed)
+            start = _lap("allocate", start)
+        first = 1 if direct else 0
+        _exact.gather_chunks(starts[first:], regions[first:kept + 1], ends[first:], offsets,
+                             *loose, placed, *output)
+        start = _lap("gather", start)
         used += traced
         row = int(starts[-1])
         per_chunk = max(1, int(WAVE_FILL * WAVE_SEGMENTS * row / max(used, 1)))
     if output is None:
         output = segment_arrays(0)
-    return Traces(offsets, *(resized(a, used) for a in output))
+    start = _lap("other", start)
+    if buffers is not None:
+        buffers.keep(output)
+        return Traces(offsets, *(a[:used] for a in output))
+    traces = Traces(offsets, *(resized(a, used) for a in output))
+    _lap("shrink", start)
+    return traces
+
+
+def grown_output(output, needed, n_rays, rows, segments, spare, in_place, written):
+    """Return the output with room for ``needed`` segments and the rest of the batch.
+
+    The rest is estimated from the ``segments`` per ray over ``rows`` rays so
+    far, with 3% and ``spare`` to spare.
+
+    Allocated fresh and pre-faulted on all threads the first time (``output``
+    None). Grown later (rare: the estimate was short) in place, or, when not
+    ``in_place`` (caller's buffers, which an earlier result may still view),
+    into fresh arrays that get the ``written`` segments so far.
+    """
+    expected = int(1.03 * segments / max(rows, 1) * n_rays) + spare
+    length = max(needed, expected)
+    validate.fits("origins", length * SEGMENT_BYTES,
+                  f"tracing {n_rays:,} rays (about {length:,} segments)")
+    if output is not None and in_place:
+        return tuple(resized(a, length) for a in output)
+    fresh = segment_arrays(length)
+    _exact.touch_pages(*fresh)
+    if output is not None:
+        for old, new in zip(output, fresh):
+            new[:written] = old[:written]
+    return fresh
 
 
 def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays):
@@ -217,7 +327,8 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0
     ends, _ = _exact.trace_chunks(starts, regions, origins, directions, t_max, args,
-                                  cells, t_enter, t_exit, offsets, False)
+                                  cells, t_enter, t_exit, offsets, False,
+                                  cells, t_enter, t_exit, -1)
     return starts, regions, ends, offsets, cells, t_enter, t_exit
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 
 from . import _validate as validate
-from ._batching import run_csr
+from ._batching import run_batch
 from .kernels import cartesian as _kernels
 from .traces import Traces
 
@@ -40,8 +40,10 @@ class CartesianGrid:
     def trace_many(self, origins, directions=None, parallel=True):
         """Voxels each ray crosses, as :class:`~logsph_trace.Traces` (the CSR of trace_many)."""
         origins, directions = validate.rays(origins, directions)
-        args = (self.low, self.voxel_size, self._shape)
-        return run_csr(_kernels.box_rows.pick(bool(parallel)), origins, directions, args)
+        inputs = (origins, directions, self.low, self.voxel_size, self._shape)
+        worst = int(self._shape.sum())
+        return run_batch(_kernels.box_span, inputs, _kernels.box_chunks, inputs,
+                         origins.shape[0], worst, parallel)
 
 
 __all__ = ["CartesianGrid", "Traces"]

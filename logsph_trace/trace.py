@@ -10,6 +10,7 @@ from . import _batching as batching
 from . import _validate as validate
 from .kernels import bisect as _bisect
 from .kernels import thibaudeau as _thibaudeau
+from .traces import TraceBuffers
 
 METHODS = ("exact", "bisect", "thibaudeau")
 
@@ -18,7 +19,7 @@ PAPER_DEFAULT_T = 1.5531  # metres: the step the paper tuned for Algorithm 1 (se
 
 
 def trace_many(grid, origins, directions=None, method="exact", parallel=True,
-               default_t=PAPER_DEFAULT_T, max_iter=None, t_max=None):
+               default_t=PAPER_DEFAULT_T, max_iter=None, t_max=None, out=None):
     """Trace many rays through ``grid``.
 
     Parameters
@@ -38,11 +39,10 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     parallel : bool
         Trace rays on all Numba threads (``prange``). The output is identical
         to the serial run. For ``"exact"`` every ray is traced once: serially
-        by appending; in parallel as one chunk of rays per thread, each
-        appending to its own region, the regions then packed (if a chunk
-        outgrows its estimated room: a bound pass, a trace pass into bounded
-        slices and a gather). The returned arrays may be views of arrays up to
-        about 1.5 times longer. The baselines use a count pass and a fill pass.
+        by appending; in parallel in waves, each thread tracing a chunk of
+        rays into a scratch region of its own, the chunks then copied to their
+        place in parallel. The returned arrays own exactly their data. The
+        baselines use a count pass and a fill pass.
     default_t : float
         ``"bisect"`` only: the first step of every search, in length units
         (paper: 1.5531 m).
@@ -53,6 +53,10 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
         ``"exact"`` only: trace each ray up to this distance (e.g. a sensor
         ray up to its hit point); the last segment ends there. Default: to the
         end of the region.
+    out : TraceBuffers, optional
+        ``"exact"`` only: write into these arrays, kept from an earlier call,
+        instead of fresh ones (no allocation, no first touch of new pages).
+        The result is then views of ``out``, valid until its next use.
 
     Returns
     -------
@@ -63,20 +67,25 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     ------
     ValueError
         Wrong shapes, NaN or infinite values, zero directions, unknown method,
-        bad ``default_t``, ``max_iter`` or ``t_max``, or ``grid`` not a
-        :class:`Grid` -- before any kernel runs.
+        bad ``default_t``, ``max_iter`` or ``t_max``, ``out`` with another
+        method, or ``grid`` not a :class:`Grid` -- before any kernel runs.
+    TypeError
+        ``out`` not a :class:`TraceBuffers`.
     """
     validate.grid(grid)
     validate.choice("method", method, METHODS)
     if method == "bisect":
         default_t, max_iter = validate.bisect_options(grid, default_t, max_iter)
-    if t_max is not None and method != "exact":
-        raise ValueError(f"t_max is supported by method='exact' only, got method={method!r}")
+    for name, value in (("t_max", t_max), ("out", out)):
+        if value is not None and method != "exact":
+            raise ValueError(f"{name} is supported by method='exact' only, got method={method!r}")
+    if out is not None and not isinstance(out, TraceBuffers):
+        raise TypeError(f"out must be a TraceBuffers, got {type(out).__name__}")
     origins, directions = validate.rays(origins, directions)
     parallel = bool(parallel)
     if method == "exact":
         t_max = validate.distances(t_max, origins.shape[0])
-        return batching.run_exact(grid, origins, directions, t_max, parallel)
+        return batching.run_exact(grid, origins, directions, t_max, parallel, out)
     if method == "bisect":
         args = (grid.kernel_args(), default_t, max_iter)
         rows = _bisect.bisect_rows

@@ -5,6 +5,7 @@ import pytest
 from oracle import box_oracle_trace, compare
 
 from logsph_trace.cartesian import CartesianGrid
+from logsph_trace.kernels import cartesian as _kernels
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 1), (7, 8, 9), (16, 16, 16)])
@@ -32,3 +33,36 @@ def test_bad_box():
         CartesianGrid((0, 0, 0), (1, 0, 1), (2, 2, 2))
     with pytest.raises(ValueError, match=r"shape\[1\] must be a positive integer"):
         CartesianGrid((0, 0, 0), (1, 1, 1), (2, 0, 2))
+
+
+@pytest.mark.parametrize("wave_segments", [1 << 17, 50])
+def test_parallel_waves_equal_the_serial_pass(monkeypatch, wave_segments):
+    # The baseline batches like the exact method: one appending pass on one
+    # thread, waves of chunks on many. With 50 segments of scratch per thread
+    # every chunk overflows after a ray or two and the output grows many times.
+    import numba
+
+    from logsph_trace import _batching, _validate
+
+    monkeypatch.setattr(_batching, "WAVE_SEGMENTS", wave_segments)
+    box = CartesianGrid((-1.0, -1.0, -1.0), (1.0, 2.0, 1.5), (13, 17, 11))
+    rng = np.random.default_rng(7)
+    origins = rng.uniform(-1.0, 1.0, (3000, 3))
+    directions = rng.normal(size=(3000, 3))
+    origins[:300] = [0.0, 0.0, 50.0]  # far away, pointing out: no voxels
+    directions[:300] = [0.0, 0.0, 1.0]
+    serial = box.trace_many(origins, directions, parallel=False)
+    previous = numba.get_num_threads()
+    try:
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        results = [box.trace_many(origins, directions, parallel=True)]
+    finally:
+        numba.set_num_threads(previous)
+    o, d = _validate.rays(origins, directions)
+    inputs = (o, d, box.low, box.voxel_size, box._shape)
+    results.append(_batching.run_waves(_kernels.box_chunks, inputs, len(o), sum(box.shape), 5))
+    assert serial.cells.shape[0] > 5 * len(origins)
+    for result in results:
+        for name in ("offsets", "cells", "t_enter", "t_exit"):
+            np.testing.assert_array_equal(getattr(result, name), getattr(serial, name))
+            assert getattr(result, name).base is None

@@ -1,13 +1,14 @@
 """Amanatides & Woo (1987) traversal of a Cartesian voxel box: the speed-of-light reference.
 
 Written in the same style as the exact log-spherical kernel (scalar state,
-count pass + fill pass, same segment output) so timings compare like for like.
+the same segment output, the same batching: one appending pass on one
+thread, waves of chunks on many) so timings compare like for like.
 """
 
 import numpy as np
 from numba import prange
 
-from .._jit import jit, jit_twins
+from .._jit import jit
 
 
 @jit
@@ -35,8 +36,9 @@ def _axis_start(origin, direction, t_start, low, size, n):
 
 
 @jit
-def trace_box_ray(origins, directions, row, low, size, shape, cells, t_enter, t_exit, start, write):
-    """Trace ray ``row`` (unit direction) through the box; return its number of voxels.
+def trace_box_ray(origins, directions, row, low, size, shape, cells, t_enter, t_exit, start):
+    """Trace ray ``row`` (unit direction) through the box, writing its voxels from
+    ``start`` on; return their number.
 
     The loop moves one index by one each time and stops when any index leaves
     its range, so it runs at most ``shape[0] + shape[1] + shape[2]`` times.
@@ -57,12 +59,11 @@ def trace_box_ray(origins, directions, row, low, size, shape, cells, t_enter, t_
     while True:
         t_next = min(next_x, next_y, next_z, t_out)
         if t_next > t_now:
-            if write:
-                cells[start + count, 0] = ix
-                cells[start + count, 1] = iy
-                cells[start + count, 2] = iz
-                t_enter[start + count] = t_now
-                t_exit[start + count] = t_next
+            cells[start + count, 0] = ix
+            cells[start + count, 1] = iy
+            cells[start + count, 2] = iz
+            t_enter[start + count] = t_now
+            t_exit[start + count] = t_next
             count += 1
         if t_next >= t_out:
             break
@@ -85,17 +86,37 @@ def trace_box_ray(origins, directions, row, low, size, shape, cells, t_enter, t_
     return count
 
 
-@jit_twins
-def box_rows(origins, directions, low, size, shape, offsets, cells, t_enter, t_exit, write):
-    """Count (``write`` False) or write (True) every ray's voxels; return the counts.
+@jit
+def box_span(first, last, origins, directions, low, size, shape, cells, t_enter, t_exit, offsets,
+             used, limit):
+    """One thread: rays first..last-1 in order, appending (``exact.trace_span``'s contract)."""
+    worst = shape[0] + shape[1] + shape[2]
+    for row in range(first, last):
+        if limit - used < worst:
+            return used, row
+        used += trace_box_ray(origins, directions, row, low, size, shape, cells, t_enter, t_exit,
+                              used)
+        offsets[row + 1] = used
+    return used, last
 
-    One source for both CSR passes: counting passes empty output arrays, and
-    writing puts ray ``row``'s voxels from ``offsets[row]`` on.
-    """
-    counts = np.empty(origins.shape[0], dtype=np.int64)
-    for row in prange(origins.shape[0]):
-        counts[row] = trace_box_ray(
-            origins, directions, row, low, size, shape, cells, t_enter, t_exit,
-            offsets[row] if write else 0, write,
-        )
-    return counts
+
+@jit(parallel=True)
+def box_chunks(starts, regions, origins, directions, low, size, shape, cells, t_enter, t_exit,
+               offsets, limited, head_cells, head_enter, head_exit, head_start):
+    """Chunk c traces rays starts[c]..starts[c+1]-1 into its region (``exact.trace_chunks``'s
+    contract, head included); ``limited`` must be true: the box has no bound pass."""
+    n_chunks = starts.shape[0] - 1
+    ends = np.empty(n_chunks, dtype=np.int64)
+    reached = np.empty(n_chunks, dtype=np.int64)
+    for chunk in prange(n_chunks):
+        if chunk == 0 and head_start >= 0:
+            ends[0], reached[0] = box_span(
+                starts[0], starts[1], origins, directions, low, size, shape, head_cells,
+                head_enter, head_exit, offsets, head_start, head_enter.shape[0],
+            )
+        else:
+            ends[chunk], reached[chunk] = box_span(
+                starts[chunk], starts[chunk + 1], origins, directions, low, size, shape, cells,
+                t_enter, t_exit, offsets, regions[chunk], regions[chunk + 1],
+            )
+    return ends, reached

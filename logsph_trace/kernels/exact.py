@@ -34,7 +34,16 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .locate import BLOCK, TWO_PI, azimuth, locate, phi_zone, rho_zone, theta_zone
+from .locate import (
+    BLOCK,
+    TWO_PI,
+    azimuth,
+    locate,
+    phi_zone,
+    private_grid,
+    rho_zone,
+    theta_zone,
+)
 
 
 @jit
@@ -602,9 +611,10 @@ def bound_counts(origins, directions, grid, bounds):
     no_cells = np.empty((0, 3), dtype=np.int32)
     no_t = np.empty(0, dtype=np.float64)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
+        own = private_grid(grid)
         lookups = np.empty(8, dtype=np.int64)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            bounds[row] = trace_ray(origins, directions, row, grid, np.inf, no_times, no_zones,
+            bounds[row] = trace_ray(origins, directions, row, own, np.inf, no_times, no_zones,
                                     lookups, no_cells, no_t, no_t, 0, BOUND)
 
 
@@ -686,12 +696,15 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
 
 @jit(parallel=True)
 def trace_chunks(starts, regions, origins, directions, t_max, grid, cells, t_enter, t_exit,
-                 offsets, limited):
+                 offsets, limited, head_cells, head_enter, head_exit, head_start):
     """Chunk c traces rays starts[c]..starts[c+1]-1 into its region, from regions[c] on.
 
     ``limited``: a chunk stops before a ray that might not fit below
     ``regions[c + 1]``. Otherwise the regions must be sized by
     ``bound_counts``: no ray writes past its bound, so none is checked.
+    With ``head_start >= 0`` chunk 0 writes to the head arrays instead, from
+    ``head_start`` on, up to their end: the output itself, where the first
+    chunk's place is known before it is traced.
     Returns per chunk the end of its segments and the first row it did not
     trace (``starts[c + 1]`` when it traced them all); ``offsets[row + 1]``
     gets the end of ray ``row``'s segments (positions in the regions).
@@ -705,9 +718,16 @@ def trace_chunks(starts, regions, origins, directions, t_max, grid, cells, t_ent
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
-        ends[chunk], reached[chunk] = trace_span(
-            starts[chunk], starts[chunk + 1], origins, directions, t_max, grid, times, zones,
-            lookups, cells, t_enter, t_exit, offsets, regions[chunk],
-            regions[chunk + 1] if limited else no_limit,
-        )
+        own = private_grid(grid)
+        if chunk == 0 and head_start >= 0:
+            ends[0], reached[0] = trace_span(
+                starts[0], starts[1], origins, directions, t_max, own, times, zones, lookups,
+                head_cells, head_enter, head_exit, offsets, head_start, head_enter.shape[0],
+            )
+        else:
+            ends[chunk], reached[chunk] = trace_span(
+                starts[chunk], starts[chunk + 1], origins, directions, t_max, own, times, zones,
+                lookups, cells, t_enter, t_exit, offsets, regions[chunk],
+                regions[chunk + 1] if limited else no_limit,
+            )
     return ends, reached

@@ -15,7 +15,7 @@ from numba import prange
 
 from .._jit import jit, jit_twins
 from .exact import line_geometry
-from .locate import BLOCK, phi_zone, rho_zone, theta_zone
+from .locate import BLOCK, phi_zone, private_grid, rho_zone, theta_zone
 
 
 @jit
@@ -136,7 +136,8 @@ def thibaudeau_ray(origins, directions, row, grid, breaks, cells, t_enter, t_exi
 def thibaudeau_rows(origins, directions, grid, offsets, cells, t_enter, t_exit, write):
     """Count (``write`` False) or write (True) every ray's cells; return the counts.
 
-    One source for both CSR passes (see ``cartesian.box_rows``).
+    One source for both CSR passes: counting passes empty output arrays,
+    and writing puts ray ``row``'s cells from ``offsets[row]`` on.
     """
     n_rays = origins.shape[0]
     counts = np.empty(n_rays, dtype=np.int64)
@@ -144,9 +145,10 @@ def thibaudeau_rows(origins, directions, grid, offsets, cells, t_enter, t_exit, 
                           grid.phi_edges.shape[0] - 1)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         breaks = np.empty(size)
+        own = private_grid(grid)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             counts[row] = thibaudeau_ray(
-                origins, directions, row, grid, breaks, cells, t_enter, t_exit,
+                origins, directions, row, own, breaks, cells, t_enter, t_exit,
                 offsets[row] if write else 0, write,
             )
     return counts

@@ -1,0 +1,93 @@
+"""``trace_many(..., out=TraceBuffers())``: caller-owned arrays reused between calls."""
+
+import numba
+import numpy as np
+import pytest
+from conftest import GRIDS, random_rays
+
+import logsph_trace as lt
+from logsph_trace import _batching, _validate
+from logsph_trace.kernels import exact as _exact
+
+FIELDS = ("offsets", "cells", "t_enter", "t_exit")
+
+
+def assert_same(result, want):
+    for name in FIELDS:
+        np.testing.assert_array_equal(getattr(result, name), getattr(want, name))
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+def test_reused_buffers_give_the_fresh_result_on_every_call(monkeypatch, parallel):
+    # Batches of growing and shrinking sizes through one set of buffers: the
+    # first call finds them empty, later ones too small (they grow) or big
+    # enough (reused as they are); every result equals a fresh trace.
+    monkeypatch.setattr(_batching, "WAVE_SEGMENTS", 2000)  # many waves, chunks overflow
+    grid = GRIDS["log_full"]()
+    rng = np.random.default_rng(5)
+    buffers = lt.TraceBuffers()
+    capacities = []
+    batches = [random_rays(rng, grid, n) for n in (700, 3000, 40, 1200)]
+    for origins, directions in batches + batches[1:2]:
+        want = lt.trace_many(grid, origins, directions, parallel=False)
+        got = lt.trace_many(grid, origins, directions, parallel=parallel, out=buffers)
+        assert_same(got, want)
+        assert np.shares_memory(got.t_enter, buffers.t_enter)
+        capacities.append(buffers.capacity)
+    assert capacities == sorted(capacities)  # they grow, never shrink
+    assert capacities[-1] == capacities[-2]  # the same batch again: no new memory
+
+
+def test_an_earlier_result_stays_valid_memory_when_buffers_grow():
+    # Buffers never resize arrays in place: a result that still views the old
+    # arrays keeps them alive (its values are stale only if they were reused).
+    grid = GRIDS["log_full"]()
+    rng = np.random.default_rng(6)
+    buffers = lt.TraceBuffers()
+    small = random_rays(rng, grid, 50)
+    first = lt.trace_many(grid, *small, out=buffers)
+    kept = first.cells.copy()
+    big = random_rays(rng, grid, 5000)
+    lt.trace_many(grid, *big, out=buffers)  # needs far more room: new arrays
+    np.testing.assert_array_equal(first.cells, kept)
+
+
+def test_parallel_with_buffers_writes_the_first_chunk_in_place():
+    # With buffers big enough from the start, every wave's first chunk is
+    # written straight into them: equal to serial with 1 to 4 chunks per wave.
+    grid = GRIDS["uniform_partial_wide"]()
+    rng = np.random.default_rng(8)
+    origins, directions = random_rays(rng, grid, 4000)
+    want = lt.trace_many(grid, origins, directions, parallel=False)
+    o, d = _validate.rays(origins, directions)
+    far = np.full(len(o), np.inf)
+    for threads in (1, 2, 3, 4):
+        buffers = lt.TraceBuffers()
+        lt.trace_many(grid, origins, directions, out=buffers)  # sized by a first call
+        got = _batching.run_waves(_exact.trace_chunks, (o, d, far, grid.kernel_args()),
+                                  len(o), int(_exact.max_segments(*grid.shape)),
+                                  threads, buffers)
+        assert_same(got, want)
+
+
+def test_out_is_checked():
+    grid = GRIDS["log_full"]()
+    with pytest.raises(TypeError, match="out must be a TraceBuffers"):
+        lt.trace_many(grid, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], out=np.empty(10))
+    with pytest.raises(ValueError, match="out is supported by method='exact' only"):
+        lt.trace_many(grid, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], method="bisect",
+                      out=lt.TraceBuffers())
+    assert "0 segments" in repr(lt.TraceBuffers())
+
+
+def test_buffers_with_threads_set_to_one():
+    grid = GRIDS["log_full"]()
+    rng = np.random.default_rng(9)
+    origins, directions = random_rays(rng, grid, 2000)
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        got = lt.trace_many(grid, origins, directions, out=lt.TraceBuffers())
+    finally:
+        numba.set_num_threads(before)
+    assert_same(got, lt.trace_many(grid, origins, directions, parallel=False))
