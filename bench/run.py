@@ -62,7 +62,7 @@ def first_call_times():
     }
 
 
-def timed(call, repeats_so_far, best):
+def timed(call, best):
     """Run ``call`` once with the phase clock on; keep it if it beats ``best``."""
     with _batching.phase_times() as phases:
         start = time.perf_counter()
@@ -96,7 +96,7 @@ def measure(n_rays, cells, repeats, thread_counts):
                 ("exact_buffers", lambda: lt.trace_many(grid, origins, directions,
                                                         parallel=parallel, out=buffers)),
             ):
-                runs[name, threads] = timed(call, repeats, runs.get((name, threads)))
+                runs[name, threads] = timed(call, runs.get((name, threads)))
     numba.set_num_threads(most)
 
     def summary(name, threads):

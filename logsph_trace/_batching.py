@@ -130,6 +130,28 @@ def grown(array, capacity, used):
     return bigger
 
 
+def _ray_offsets(n_rays, buffers):
+    """Return CSR offsets (n_rays + 1,) with offsets[0] = 0, from ``buffers`` when given."""
+    offsets = np.empty(n_rays + 1, dtype=np.int64) if buffers is None else \
+        buffers.ray_offsets(n_rays)
+    offsets[0] = 0
+    return offsets
+
+
+def _result(offsets, segments, used, buffers, start):
+    """Return the ``Traces`` of the first ``used`` segments.
+
+    With ``buffers``: views, the arrays kept there for the next call.
+    Without: the arrays shrunk in place, so they own exactly their data.
+    """
+    if buffers is not None:
+        buffers.keep(segments)
+        return Traces(offsets, *(a[:used] for a in segments))
+    traces = Traces(offsets, *(resized(a, used) for a in segments))
+    _lap("shrink", start)
+    return traces
+
+
 def run_serial(span, inputs, n_rays, worst, buffers=None):
     """One appending pass (see the module docstring) of a ``*_span`` kernel.
 
@@ -139,9 +161,7 @@ def run_serial(span, inputs, n_rays, worst, buffers=None):
     ``buffers``: a ``TraceBuffers`` to write into (the result is views of it).
     """
     start = time.perf_counter()
-    offsets = np.empty(n_rays + 1, dtype=np.int64) if buffers is None else \
-        buffers.ray_offsets(n_rays)
-    offsets[0] = 0
+    offsets = _ray_offsets(n_rays, buffers)
     capacity = 2 * worst + 32 * min(n_rays, _exact.BLOCK)
     held = None if buffers is None else buffers.segments()
     if held is not None and held[0].shape[0] >= capacity:
@@ -162,12 +182,7 @@ def run_serial(span, inputs, n_rays, worst, buffers=None):
                           f"tracing {n_rays:,} rays (about {expected:,} segments)")
             capacity = max(capacity + capacity // 2, expected) + 2 * worst
             cells, t_enter, t_exit = (grown(a, capacity, used) for a in (cells, t_enter, t_exit))
-    if buffers is not None:
-        buffers.keep((cells, t_enter, t_exit))
-        return Traces(offsets, cells[:used], t_enter[:used], t_exit[:used])
-    traces = Traces(offsets, *(resized(a, used) for a in (cells, t_enter, t_exit)))
-    _lap("shrink", start)
-    return traces
+    return _result(offsets, (cells, t_enter, t_exit), used, buffers, start)
 
 
 # Below this many rays a batch is traced on one thread even with parallel=True.
@@ -220,9 +235,7 @@ def run_waves(chunks, inputs, n_rays, worst, threads, buffers=None):
     ``buffers``: a ``TraceBuffers`` to write into (the result is views of it).
     """
     start = time.perf_counter()
-    offsets = np.empty(n_rays + 1, dtype=np.int64) if buffers is None else \
-        buffers.ray_offsets(n_rays)
-    offsets[0] = 0
+    offsets = _ray_offsets(n_rays, buffers)
     in_place = buffers is None  # buffers may be viewed by an earlier result: never resized
     room = WAVE_SEGMENTS + worst  # every chunk fits at least one ray
     regions = np.arange(threads + 1, dtype=np.int64) * room
@@ -273,12 +286,7 @@ def run_waves(chunks, inputs, n_rays, worst, threads, buffers=None):
     if output is None:
         output = segment_arrays(0)
     start = _lap("other", start)
-    if buffers is not None:
-        buffers.keep(output)
-        return Traces(offsets, *(a[:used] for a in output))
-    traces = Traces(offsets, *(resized(a, used) for a in output))
-    _lap("shrink", start)
-    return traces
+    return _result(offsets, output, used, buffers, start)
 
 
 def grown_output(output, needed, n_rays, rows, segments, spare, in_place, written):
