@@ -259,12 +259,10 @@ class Grid:
         """Return the grid as the kernels take it: one ``GridArrays`` bundle (cached)."""
         cached = getattr(self, "_kernel_args", None)
         if cached is None:
-            # Writeable copies: the type ``locate.private_grid`` makes too,
-            # so every kernel compiles for one bundle type.
-            theta = self.theta_edges.copy()
-            phi = self.phi_edges.copy()
+            theta = self.theta_edges
+            phi = self.phi_edges
             cached = _locate.GridArrays(
-                self.rho_edges.copy(), self.rho_edges**2, self.rho_kind,
+                self.rho_edges, self.rho_edges**2, self.rho_kind,
                 theta, np.sin(theta), np.cos(theta), self.theta_kind, self.theta_full,
                 phi, np.tan(phi) ** 2, np.sign(phi), self.phi_kind,
             )

@@ -103,9 +103,9 @@ class TraceBuffers:
 
     A robot traces every frame. With fresh arrays each call pays for their
     allocation and for the first touch of every page (on the 2-core test
-    machine about an eighth of a one-thread trace, and it does not speed up
-    with threads). Buffers keep the arrays, and their pages, from call to
-    call: they grow when a batch needs more and never shrink.
+    machine 11-12% of a one-thread call: ``python -m bench.run``). Buffers
+    keep the arrays, and their pages, from call to call: they grow when a
+    batch needs more and never shrink.
 
     The :class:`Traces` a call returns are views into these arrays, valid
     until the next call that uses the same buffers: copy what you keep.

@@ -20,7 +20,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit, jit_twins
-from .locate import BLOCK, cell_of_point, private_grid
+from .locate import BLOCK, cell_of_point
 
 _NONE = 0
 _HALVED = 1
@@ -181,10 +181,9 @@ def bisect_rows(origins, directions, grid, default_t, max_iter, offsets, cells, 
     counts = np.empty(n_rays, dtype=np.int64)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         candidates = np.empty(11)
-        own = private_grid(grid)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             counts[row] = bisect_ray(
-                origins, directions, row, own, default_t, max_iter, candidates,
+                origins, directions, row, grid, default_t, max_iter, candidates,
                 cells, t_enter, t_exit, offsets[row] if write else 0, write,
             )
     return counts

@@ -34,16 +34,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .locate import (
-    BLOCK,
-    TWO_PI,
-    azimuth,
-    locate,
-    phi_zone,
-    private_grid,
-    rho_zone,
-    theta_zone,
-)
+from .locate import BLOCK, TWO_PI, azimuth, locate, phi_zone, rho_zone, theta_zone
 
 
 @jit
@@ -611,10 +602,9 @@ def bound_counts(origins, directions, grid, bounds):
     no_cells = np.empty((0, 3), dtype=np.int32)
     no_t = np.empty(0, dtype=np.float64)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
-        own = private_grid(grid)
         lookups = np.empty(8, dtype=np.int64)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            bounds[row] = trace_ray(origins, directions, row, own, np.inf, no_times, no_zones,
+            bounds[row] = trace_ray(origins, directions, row, grid, np.inf, no_times, no_zones,
                                     lookups, no_cells, no_t, no_t, 0, BOUND)
 
 
@@ -718,15 +708,14 @@ def trace_chunks(starts, regions, origins, directions, t_max, grid, cells, t_ent
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
-        own = private_grid(grid)
         if chunk == 0 and head_start >= 0:
             ends[0], reached[0] = trace_span(
-                starts[0], starts[1], origins, directions, t_max, own, times, zones, lookups,
+                starts[0], starts[1], origins, directions, t_max, grid, times, zones, lookups,
                 head_cells, head_enter, head_exit, offsets, head_start, head_enter.shape[0],
             )
         else:
             ends[chunk], reached[chunk] = trace_span(
-                starts[chunk], starts[chunk + 1], origins, directions, t_max, own, times, zones,
+                starts[chunk], starts[chunk + 1], origins, directions, t_max, grid, times, zones,
                 lookups, cells, t_enter, t_exit, offsets, regions[chunk],
                 regions[chunk + 1] if limited else no_limit,
             )

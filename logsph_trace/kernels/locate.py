@@ -51,24 +51,6 @@ class GridArrays(NamedTuple):
     phi_kind: int
 
 
-@jit
-def private_grid(grid):
-    """Copy ``grid``'s arrays for one task of a parallel kernel.
-
-    Reading an array out of the bundle takes a reference to it, an atomic
-    add on the array's shared counter. Threads reading the same bundle
-    therefore fight over one cache line on every ray: on 2 cores the
-    bound pass ran 1.35x faster on 2 threads than on 1, and 1.95x with a
-    copy per task (measured). A copy is a few hundred floats.
-    """
-    return GridArrays(
-        grid.rho_edges.copy(), grid.rho_sq.copy(), grid.rho_kind,
-        grid.theta_edges.copy(), grid.theta_sin.copy(), grid.theta_cos.copy(), grid.theta_kind,
-        grid.theta_full,
-        grid.phi_edges.copy(), grid.phi_tan2.copy(), grid.phi_nappe.copy(), grid.phi_kind,
-    )
-
-
 @jit(inline="always")
 def _last_at_or_below(value, edges):
     """Index of the last edge <= ``value`` (-1 if none): ``searchsorted(..., "right") - 1``,

@@ -21,7 +21,7 @@ from .exact import (
     theta_plan,
     theta_times,
 )
-from .locate import BLOCK, locate, phi_zone, private_grid, rho_zone, theta_zone
+from .locate import BLOCK, locate, phi_zone, rho_zone, theta_zone
 
 # Per-thread flag bits of a cell in one scan.
 FREE = 1
@@ -218,11 +218,10 @@ def mark_scan(origin, directions, distances, is_hit, grid, free, hits):
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
-        own = private_grid(grid)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             hits[row] = _walk_ray(
                 ox, oy, oz, directions[row, 0], directions[row, 1], directions[row, 2],
-                distances[row], is_hit[row], ir, jt, kp, own, times, zones, lookups, row_free,
+                distances[row], is_hit[row], ir, jt, kp, grid, times, zones, lookups, row_free,
             )
 
 
@@ -324,19 +323,15 @@ def mark_radial(points, lengths, distances, is_hit, grid, free_extent, hits):
     Three lookups per ray instead of a traversal.
     """
     n_rays = points.shape[0]
-    rho_kind = grid.rho_kind
-    theta_kind = grid.theta_kind
-    phi_kind = grid.phi_kind
-    n_rho = grid.rho_edges.shape[0] - 1
-    n_theta = grid.theta_edges.shape[0] - 1
-    n_phi = grid.phi_edges.shape[0] - 1
-    snap = 1e-12 * grid.rho_edges[n_rho]
+    rho_edges, rho_kind = grid.rho_edges, grid.rho_kind
+    theta_edges, theta_kind = grid.theta_edges, grid.theta_kind
+    phi_edges, phi_kind = grid.phi_edges, grid.phi_kind
+    n_rho = rho_edges.shape[0] - 1
+    n_theta = theta_edges.shape[0] - 1
+    n_phi = phi_edges.shape[0] - 1
+    snap = 1e-12 * rho_edges[n_rho]
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         thread = numba.get_thread_id()
-        own = private_grid(grid)
-        rho_edges = own.rho_edges
-        theta_edges = own.theta_edges
-        phi_edges = own.phi_edges
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             hits[row] = -1
             x = points[row, 0] / lengths[row]

@@ -15,7 +15,7 @@ from numba import prange
 
 from .._jit import jit, jit_twins
 from .exact import line_geometry
-from .locate import BLOCK, phi_zone, private_grid, rho_zone, theta_zone
+from .locate import BLOCK, phi_zone, rho_zone, theta_zone
 
 
 @jit
@@ -145,10 +145,9 @@ def thibaudeau_rows(origins, directions, grid, offsets, cells, t_enter, t_exit, 
                           grid.phi_edges.shape[0] - 1)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         breaks = np.empty(size)
-        own = private_grid(grid)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             counts[row] = thibaudeau_ray(
-                origins, directions, row, own, breaks, cells, t_enter, t_exit,
+                origins, directions, row, grid, breaks, cells, t_enter, t_exit,
                 offsets[row] if write else 0, write,
             )
     return counts
