@@ -6,6 +6,7 @@ import pytest
 from oracle import first_occupied, reference_log_odds
 
 import logsph_trace as lt
+from logsph_trace._validate import row_norms
 from logsph_trace.occupancy import OccupancyGrid, fixation_probability, gaze_targets
 
 GRID = lt.Grid(0.3, 10.0, 32, 90, 45)
@@ -135,7 +136,9 @@ def _reference_log_odds(grid, points, sensor, max_range=None):
     """One scan's log-odds, built in numpy (tests/oracle.py) from ``trace_many`` with t_max."""
     sensor = np.asarray(sensor, dtype=np.float64)
     offsets = points - sensor
-    distances = np.linalg.norm(offsets, axis=1)
+    # The ray lengths integrate uses: np.linalg.norm can differ by an ulp,
+    # which decides the end cell of a ray ending on a sphere.
+    distances = row_norms(offsets)
     offsets, distances = offsets[distances > 0], distances[distances > 0]
     is_hit = np.ones(distances.shape[0], dtype=bool)
     if max_range is not None:
@@ -156,6 +159,9 @@ SCANS = [  # (grid, sensor): where the rays start decides the path and the cases
     (lt.Grid(0.5, 6.0, 20, 24, 12, theta_range=(-1.0, 2.5), phi_range=(-0.6, 1.1),
              spacing="uniform"), [0.2, 0.1, -0.1]),  # partial ranges, uniform shells
     (lt.Grid(1.0, 30.0, 12, 36, 18, spacing="paper"), [1.5, 2.0, -0.5]),
+    # over 64 shells: a column's flags span three 64-bit words
+    (lt.Grid(0.2, 12.0, 150, 36, 18), [0.05, -0.1, 0.08]),
+    (lt.Grid(0.2, 12.0, 150, 36, 18), [2.5, 0.7, -1.9]),
 ]
 
 
@@ -207,3 +213,21 @@ def test_load_restores_the_grid_through_its_constructor(tmp_path):
             grid.rho_kind, grid.theta_kind, grid.phi_kind)
     with pytest.raises(ValueError, match="not the edges of 'log' spacing"):
         lt.Grid.from_edges([0.5, 1.0, 3.0], [0.0, 1.0], [0.0, 1.0], spacing="log")
+
+
+@pytest.mark.parametrize("sensor", [[0.0, 0.0, 0.0], [0.06, 0.08, 0.0], [1.3, -0.4, 2.2]])
+@pytest.mark.parametrize("grid", [GRID, lt.Grid(0.2, 12.0, 150, 36, 18),
+                                  lt.Grid(0.5, 6.0, 20, 24, 12, spacing="uniform")])
+def test_end_points_on_and_beside_every_shell_edge(grid, sensor):
+    # End points on a shell's sphere, and one ulp either side: the radial path
+    # finds their shell by a closed-form guess corrected against the edges,
+    # the column walk by comparing squared radii.
+    rng = np.random.default_rng(83)
+    edges = grid.rho_edges
+    radii = np.concatenate([edges, np.nextafter(edges, 0.0), np.nextafter(edges, np.inf)])
+    radii = np.repeat(radii, 8)
+    directions = rng.normal(size=(radii.shape[0], 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    points = directions * radii[:, None]
+    fast = OccupancyGrid(grid).integrate(points, sensor)
+    np.testing.assert_array_equal(fast.log_odds, _reference_log_odds(grid, points, sensor))

@@ -89,6 +89,14 @@ def locate(value, edges, kind):
         guess = int(math.log(offset) / math.log(base)) if offset > 1.0 else 0
     else:
         guess = _last_at_or_below(value, edges)
+    return corrected(value, edges, guess)
+
+
+@jit(inline="always")
+def corrected(value, edges, guess):
+    """The cell of ``edges[0] <= value <= edges[-1]``, from any ``guess``: clamped
+    to the cells, then moved until the stored edges agree."""
+    n = edges.shape[0] - 1
     if guess < 0:
         guess = 0
     if guess > n - 1:

@@ -14,6 +14,7 @@ from .._jit import jit
 from .exact import (
     PHI,
     THETA,
+    _sphere_time,
     grid_scratch_size,
     line_geometry,
     phi_plan,
@@ -21,7 +22,7 @@ from .exact import (
     theta_plan,
     theta_times,
 )
-from .locate import BLOCK, locate, phi_zone, rho_zone, theta_zone
+from .locate import BLOCK, LOG, corrected, locate, phi_zone, rho_zone, theta_zone
 
 # Per-thread flag bits of a cell in one scan.
 FREE = 1
@@ -82,12 +83,14 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zo
     slack = 1e-9 * (math.sqrt(rho_sq[n_rho]) + math.sqrt(ox * ox + oy * oy + oz * oz))
     snap = 1e-3 * slack
     i = ir
+    # The trace's own line geometry and stop, for the end of the ray (below).
+    t_closest0, h2_0, _, _, _ = line_geometry(ox, oy, oz, dx, dy, dz)
+    t_max0 = t_max
     if ir == -1:
         # In the egocentric gap: start where the ray leaves it, on the inner
         # sphere. Near the centre a ray sweeps through many angular zones (from
         # the origin's direction to its own) that hold no cell.
-        t_closest, h2, _, _, _ = line_geometry(ox, oy, oz, dx, dy, dz)
-        t_in = t_closest + math.sqrt(max(rho_sq[0] - h2, 0.0))
+        t_in = t_closest0 + math.sqrt(max(rho_sq[0] - h2_0, 0.0))
         if t_in >= t_max:
             return -1  # ends in the gap
         ox += t_in * dx
@@ -137,6 +140,9 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zo
         t_theta = times[THETA, done_t + 1]
         t_phi = times[PHI, done_p + 1]
         t_next = min(min(t_theta, t_phi), t_final)
+        crossed = -1  # the last sphere crossed in this stretch, if any
+        crossed_out = False  # ... outwards
+        left_flagged = False  # ... and whether the cell it left was flagged
         if falling:
             # Inward until the closest approach (or the next crossing before it).
             r2 = h2 if t_next >= t_closest else (t_next - t_closest) ** 2 + h2
@@ -144,9 +150,13 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zo
                 if i >= 0 and r2 < rho_sq[i]:
                     # Left through the sphere below: a whole shell, unless it
                     # was entered at the crossing and left within snap.
-                    if column_in and i < n_rho and not (at_crossing and _left_within_snap(
-                            t_now, t_next, snap, t_closest, h2, i, rho_sq)):
+                    left_flagged = column_in and i < n_rho and not (
+                        at_crossing and _left_within_snap(t_now, t_next, snap, t_closest, h2, i,
+                                                          rho_sq))
+                    if left_flagged:
                         free[column * n_rho + i] = 1
+                    crossed = i
+                    crossed_out = False
                     i -= 1
                     at_crossing = False
                     inward = True
@@ -165,12 +175,15 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zo
                             sliver = inward and 4.0 * (rho_sq[i + 1] - h2) <= snap * snap
                         if not sliver:
                             free[column * n_rho + i] = 1
+                    left_flagged = column_in and i >= 0 and not sliver
+                    crossed = i + 1
+                    crossed_out = True
                     i += 1
                     at_crossing = False
                     inward = False
                 else:
                     break
-            if i == n_rho:
+            if i == n_rho and t_next < t_final:
                 return -1  # past rho_max and moving away for good
         # The cell is left at t_next: by an angular crossing or the end of the ray.
         cell_in = column_in and 0 <= i < n_rho
@@ -182,7 +195,26 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zo
             if stays:
                 free[column * n_rho + i] = 1
         if t_next >= t_final:
-            if is_hit and t_max <= t_leave and cell_in and stays:
+            if not (is_hit and t_max0 <= _sphere_time(t_closest0, h2_0, rho_sq[n_rho], True)):
+                return -1  # no hit, or the ray leaves the region before its end
+            # The trace stops at t_max by comparing its sphere crossing times
+            # (from the sensor, not the gap's exit) with it, which rho^2 at
+            # t_max only approximates: on a sphere, follow the times. A sphere
+            # the trace does not cross before t_max leaves it in the cell
+            # before; one it does cross starts a sliver, which ends the trace
+            # without a hit.
+            if crossed >= 0 and _sphere_time(t_closest0, h2_0, rho_sq[crossed],
+                                             crossed_out) >= t_max0:
+                before = crossed - 1 if crossed_out else crossed
+                if left_flagged and 0 <= before < n_rho:
+                    return column * n_rho + before
+                return -1
+            outward = not falling
+            ahead = i + 1 if outward else i
+            if 0 <= ahead <= n_rho and _sphere_time(t_closest0, h2_0, rho_sq[ahead],
+                                                    outward) < t_max0:
+                return -1
+            if cell_in and stays:
                 return column * n_rho + i
             return -1
         if t_theta <= t_phi:
@@ -317,7 +349,9 @@ def mark_radial(points, lengths, distances, is_hit, grid, free_extent, hits):
     lengths), exactly as ``trace_many`` would trace it: a point on a cell's
     edge may round to either side, the direction decides. An end cell the ray
     enters less than the exact trace's ``snap`` before ``distances`` is a
-    sliver, neither free nor hit. ``free_extent`` (threads, n_theta * n_phi)
+    sliver, neither free nor hit; a ray ending exactly on a sphere ends in
+    the cell below it, as the trace (whose crossing time ``sqrt(rho^2)`` is
+    ``rho`` itself) stops before crossing. ``free_extent`` (threads, n_theta * n_phi)
     int64 records, per thread and column, how many shells from the centre are
     free; ``hits[row]`` gets the map index of ray ``row``'s hit cell, or -1.
     Three lookups per ray instead of a traversal.
@@ -330,6 +364,11 @@ def mark_radial(points, lengths, distances, is_hit, grid, free_extent, hits):
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
     snap = 1e-12 * rho_edges[n_rho]
+    # locate()'s guess for log shells, with its constant logarithm taken once
+    # (it was a third of a ray's time); corrected against the edges as there.
+    log_shells = rho_kind == LOG
+    rho_min = rho_edges[0]
+    shells_per_log = n_rho / math.log(rho_edges[n_rho] / rho_min) if log_shells else 0.0
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         thread = numba.get_thread_id()
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
@@ -341,8 +380,23 @@ def mark_radial(points, lengths, distances, is_hit, grid, free_extent, hits):
             k = phi_zone(x, y, z, phi_edges, phi_kind)
             if j >= n_theta or k < 0 or k >= n_phi:
                 continue  # outside the angular range: the ray never enters the region
-            shell = locate(distances[row], rho_edges, rho_kind)  # -1: gap, n_rho: beyond
-            if 0 <= shell < n_rho and distances[row] - rho_edges[shell] <= snap:
+            distance = distances[row]
+            if not log_shells:
+                shell = locate(distance, rho_edges, rho_kind)  # -1: gap, n_rho: beyond
+            elif distance < rho_min:
+                shell = -1
+            elif distance > rho_edges[n_rho]:
+                shell = n_rho
+            else:
+                shell = corrected(distance, rho_edges,
+                                  int(math.log(distance / rho_min) * shells_per_log))
+            if 0 <= shell < n_rho and distance == rho_edges[shell]:
+                # The ray stops on the sphere below its shell, which the trace
+                # only crosses before t_max: it ends in the cell below.
+                shell -= 1
+                hit = is_hit[row] and shell >= 0
+                free = shell if hit else shell + 1
+            elif 0 <= shell < n_rho and distance - rho_edges[shell] <= snap:
                 shell -= 1  # the end cell is a sliver: the ray stops on its edge
                 hit = False
                 free = shell + 1
