@@ -26,8 +26,7 @@ import numba
 import numpy as np
 
 import logsph_trace as lt
-from bench.workload import make_box, make_grid, make_rays
-from logsph_trace import _batching
+from bench.workload import make_box, make_grid, make_rays, thread_counts, timed
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -62,17 +61,6 @@ def first_call_times():
     }
 
 
-def timed(call, best):
-    """Run ``call`` once with the phase clock on; keep it if it beats ``best``."""
-    with _batching.phase_times() as phases:
-        start = time.perf_counter()
-        result = call()
-        seconds = time.perf_counter() - start
-    if best is None or seconds < best["seconds"]:
-        best = {"seconds": seconds, "phases": dict(phases), "voxels": int(result.cells.shape[0])}
-    return best
-
-
 def measure(n_rays, cells, repeats, thread_counts):
     grid = make_grid(cells)
     box = make_box(cells)
@@ -96,7 +84,8 @@ def measure(n_rays, cells, repeats, thread_counts):
                 ("exact_buffers", lambda: lt.trace_many(grid, origins, directions,
                                                         parallel=parallel, out=buffers)),
             ):
-                runs[name, threads] = timed(call, runs.get((name, threads)))
+                runs[name, threads] = timed(call, runs.get((name, threads)),
+                                            keep=lambda traces: int(traces.cells.shape[0]))
     numba.set_num_threads(most)
 
     def summary(name, threads):
@@ -105,9 +94,9 @@ def measure(n_rays, cells, repeats, thread_counts):
         return {
             "threads": threads,
             "seconds": run["seconds"],
-            "voxels": run["voxels"],
-            "voxels_per_ray": run["voxels"] / n_rays,
-            "ns_per_voxel": run["seconds"] / run["voxels"] * 1e9,
+            "voxels": run["kept"],
+            "voxels_per_ray": run["kept"] / n_rays,
+            "ns_per_voxel": run["seconds"] / run["kept"] * 1e9,
             "rays_per_second": n_rays / run["seconds"],
             "speedup_over_one_thread": one / run["seconds"],
             "phases_s": run["phases"],
@@ -189,8 +178,8 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=RESULTS / "traversal.json")
     args = parser.parse_args(argv)
 
-    thread_counts = sorted({1, *(int(t) for t in args.threads.split(","))})
-    result = measure(args.rays, args.cells, args.repeats, thread_counts)
+    counts = thread_counts(args.threads)
+    result = measure(args.rays, args.cells, args.repeats, counts)
     first_call = None if args.no_first_call else first_call_times()
     text = table(result, first_call)
     print(text)

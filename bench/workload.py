@@ -47,6 +47,48 @@ def best_time(func, repeats):
     return best, result
 
 
+def timed(call, best=None, keep=lambda result: None):
+    """Run ``call`` once with the phase clock on; return its record (``seconds``,
+    ``phases``, ``kept``: ``keep(result)``) if it beats ``best``, else ``best``."""
+    from logsph_trace import _batching
+
+    with _batching.phase_times() as phases:
+        start = time.perf_counter()
+        result = call()
+        seconds = time.perf_counter() - start
+    if best is None or seconds < best["seconds"]:
+        return {"seconds": seconds, "phases": dict(phases), "kept": keep(result)}
+    return best
+
+
+def thread_counts(text):
+    """``"1,2,4"`` -> [1, 2, 4], always with 1 and capped at Numba's thread count."""
+    import numba
+
+    most = numba.get_num_threads()
+    return sorted({1, *(min(int(t), most) for t in text.split(","))})
+
+
+def motorcycle_points(sensor=(0.0, 0.0, 0.0)):
+    """The Middlebury 2014 Motorcycle frame scikit-image ships, as points in a map's frame.
+
+    Depth from the ground-truth disparity, Z = f B / (d + doffs), with the
+    calibration in ``skimage.data.stereo_motorcycle``'s docstring; invalid
+    pixels (inf) are dropped. The camera sits at ``sensor`` looking along +z
+    with image-up along +y, so OpenCV's (x, y, z) becomes the map's (-x, -y, z).
+    """
+    from skimage.data import stereo_motorcycle
+
+    focal, cx, cy, doffs, baseline = 994.978, 311.193, 254.877, 31.086, 0.193001
+    _, _, disparity = stereo_motorcycle()
+    valid = np.isfinite(disparity)
+    rows, columns = np.nonzero(valid)
+    z = focal * baseline / (disparity[valid].astype(np.float64) + doffs)
+    x = (columns - cx) * z / focal
+    y = (rows - cy) * z / focal
+    return np.c_[-x, -y, z] + np.asarray(sensor, dtype=np.float64)
+
+
 def write_results(name, argv, text, record):
     """Print ``text`` and write bench/results/<name>.json (``record`` plus the
     command and date) and <name>.md (the command, then ``text``)."""

@@ -59,8 +59,10 @@ _phases = threading.local()
 def phase_times():
     """Yield a dict of the seconds each batch phase took in this block (a benchmark hook).
 
-    The phases are "trace", "allocate", "gather", "shrink" and "other"
-    (Python between the kernels); only this thread's calls are counted.
+    The batch phases are "trace", "allocate", "gather", "shrink" and
+    "other" (Python between the kernels); a cone's are "bound", "trace" and
+    "aggregate", an integration's "prepare", "mark" and "apply". Only this
+    thread's calls are counted.
     """
     times = {}
     _phases.times = times
@@ -70,7 +72,7 @@ def phase_times():
         _phases.times = None
 
 
-def _lap(phase, since):
+def lap(phase, since):
     """Add the time since ``since`` to ``phase`` (when ``phase_times`` is on); return now."""
     now = time.perf_counter()
     times = getattr(_phases, "times", None)
@@ -148,7 +150,7 @@ def _result(offsets, segments, used, buffers, start):
         buffers.keep(segments)
         return Traces(offsets, *(a[:used] for a in segments))
     traces = Traces(offsets, *(resized(a, used) for a in segments))
-    _lap("shrink", start)
+    lap("shrink", start)
     return traces
 
 
@@ -172,10 +174,10 @@ def run_serial(span, inputs, n_rays, worst, buffers=None):
     used = 0
     row = 0
     while row < n_rays:
-        start = _lap("allocate", start)
+        start = lap("allocate", start)
         used, row = span(row, n_rays, *inputs, cells, t_enter, t_exit, offsets, used, capacity)
         used, row = int(used), int(row)
-        start = _lap("trace", start)
+        start = lap("trace", start)
         if row < n_rays:
             expected = int(1.2 * used / max(row, 1) * n_rays)
             validate.fits("origins", (capacity + expected) * SEGMENT_BYTES,
@@ -255,11 +257,11 @@ def run_waves(chunks, inputs, n_rays, worst, threads, buffers=None):
         if direct and used + room > output[0].shape[0]:
             output = grown_output(output, used + room, n_rays, row, used, threads * room,
                                   in_place, used)
-        start = _lap("other", start)
+        start = lap("other", start)
         head = output if direct else loose
         ends, reached = chunks(starts, regions, *inputs, *loose, offsets, True, *head,
                                used if direct else -1)
-        start = _lap("trace", start)
+        start = lap("trace", start)
         # Keep the chunks in order up to the first that ran out of room (with
         # the rays it traced); the rest of the wave is traced again next time.
         short = np.flatnonzero(reached < starts[1:])
@@ -272,20 +274,20 @@ def run_waves(chunks, inputs, n_rays, worst, threads, buffers=None):
         traced = int(np.sum(spans))
         placed = used + (int(spans[0]) if direct else 0)  # segments already in the output
         if output is None or used + traced > output[0].shape[0]:
-            start = _lap("other", start)
+            start = lap("other", start)
             output = grown_output(output, used + traced, n_rays, int(starts[-1]), used + traced,
                                   threads * room, in_place, placed)
-            start = _lap("allocate", start)
+            start = lap("allocate", start)
         first = 1 if direct else 0
         _exact.gather_chunks(starts[first:], regions[first:kept + 1], ends[first:], offsets,
                              *loose, placed, *output)
-        start = _lap("gather", start)
+        start = lap("gather", start)
         used += traced
         row = int(starts[-1])
         per_chunk = max(1, int(WAVE_FILL * WAVE_SEGMENTS * row / max(used, 1)))
     if output is None:
         output = segment_arrays(0)
-    start = _lap("other", start)
+    start = lap("other", start)
     return _result(offsets, output, used, buffers, start)
 
 
@@ -326,6 +328,7 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
     ``regions[c]`` to ``ends[c]``, and ray ``r``'s segments are
     ``offsets[r]:offsets[r + 1]`` (gaps between regions).
     """
+    start = time.perf_counter()
     n_rays = origins.shape[0]
     cumulative = np.zeros(n_rays + 1, dtype=np.int64)
     _exact.bound_counts(origins, directions, args, cumulative[1:])
@@ -334,9 +337,11 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
     cells, t_enter, t_exit = segment_arrays(int(regions[-1]))
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0
+    start = lap("bound", start)
     ends, _ = _exact.trace_chunks(starts, regions, origins, directions, t_max, args,
                                   cells, t_enter, t_exit, offsets, False,
                                   cells, t_enter, t_exit, -1)
+    lap("trace", start)
     return starts, regions, ends, offsets, cells, t_enter, t_exit
 
 

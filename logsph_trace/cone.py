@@ -6,6 +6,7 @@ crossed, each with the weight of the rays that cross it and the distance at
 which the cone first reaches it.
 """
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -208,40 +209,68 @@ def sample_rays(grid, origin, direction, half_angle, n_rays, pattern, weighting,
     return directions, _ray_weights(angles, half_angle, weighting, sigma)
 
 
-def _chunk_starts(n_rays):
+def chunk_starts(n_rays):
     """Boundaries of a cone's chunks of rays (see ``CONE_CHUNKS``)."""
     chunks = max(1, min(CONE_CHUNKS, n_rays // CONE_CHUNK_RAYS))
     return np.linspace(0, n_rays, chunks + 1).astype(np.int64)
 
 
-def aggregate_cells(grid, offsets, cells, t_enter, axis, weights, per_segment=False, normalise=True,
-               chunks=None):
+def aggregate_cells(grid, offsets, cells, t_enter, axis, weights, chunks=None, fixation=None):
     """Weighted cells of a cone's traces, ordered by first reach.
 
     ``offsets``, ``cells``, ``t_enter``: packed CSR, or the unpacked regions
     of :func:`~logsph_trace._batching.trace_regions` with ``chunks = (starts,
-    regions)``. ``weights`` are per ray, or per segment with ``per_segment``;
-    ``axis`` is a direction near the cone's axis; ``normalise`` scales the
-    cell weights to sum to 1. The rays are aggregated in chunks (see
-    ``CONE_CHUNKS``), in parallel.
+    regions)``. ``weights`` are per ray; ``axis`` is a direction near the
+    cone's axis. Each cell gets the summed weight of the rays crossing it,
+    normalised to sum to 1; or, with ``fixation = (t_exit, log_odds,
+    min_distance, unknown, free_below)`` (``log_odds`` flat), the weighted
+    probability that it is the first occupied cell each ray meets (see
+    :func:`~logsph_trace.fixation_probability`), not normalised. The rays
+    are aggregated in chunks (see ``CONE_CHUNKS``), in parallel.
     """
     if chunks is None:
-        starts = _chunk_starts(offsets.shape[0] - 1)
+        starts = chunk_starts(offsets.shape[0] - 1)
         firsts = offsets[starts[:-1]]
     else:
         starts, firsts = chunks[0], chunks[1][:-1]
+    firsts = np.ascontiguousarray(firsts)
     j_axis = grid.cell_of(grid.rho_max * 0.5 * axis)[1]
     j_shift = (grid.n_theta // 2 - max(int(j_axis), 0)) % grid.n_theta
-    cells, weights, t_first = _cone.aggregate_boxes(
-        offsets, starts, np.ascontiguousarray(firsts), cells, t_enter, weights, per_segment,
-        grid.n_rho, grid.n_theta, j_shift,
-    )
+    if fixation is None:
+        cells, weights, t_first = _cone.aggregate_boxes(
+            offsets, starts, firsts, cells, t_enter, weights, grid.n_rho, grid.n_theta, j_shift)
+    else:
+        t_exit, log_odds, min_distance, unknown, free_below = fixation
+        cells, weights, t_first = _cone.fixation_boxes(
+            offsets, starts, firsts, cells, t_enter, t_exit, weights, log_odds, grid.n_theta,
+            grid.n_phi, min_distance, unknown, free_below, j_shift)
     order = np.argsort(t_first, kind="stable")
     weights = weights[order]
     total = weights.sum()
-    if normalise and total > 0:
+    if fixation is None and total > 0:
         weights = weights / total
     return cells[order], weights, t_first[order]
+
+
+def aggregate_cone(grid, origin, directions, ray_weights, fixation=None):
+    """Trace a cone's rays and aggregate them into weighted cells.
+
+    The rays from ``origin`` are traced in chunks, each into its own region
+    of reused scratch, then aggregated by :func:`aggregate_cells`;
+    ``fixation`` is as there, without ``t_exit``, which the trace supplies.
+    """
+    n_rays = directions.shape[0]
+    origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
+    starts, regions, _, offsets, cells, t_enter, t_exit = batching.trace_regions(
+        grid, origins, directions, np.full(n_rays, np.inf), grid.kernel_args(),
+        chunk_starts(n_rays), batching.scratch_segments)
+    start = time.perf_counter()
+    if fixation is not None:
+        fixation = (t_exit, *fixation)
+    aggregated = aggregate_cells(grid, offsets, cells, t_enter, directions[0], ray_weights,
+                                 chunks=(starts, regions), fixation=fixation)
+    batching.lap("aggregate", start)
+    return aggregated
 
 
 def trace_given_rays(grid, origin, directions):
@@ -294,14 +323,7 @@ def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibona
     origin = validate.point("origin", origin)
     directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
-    n_rays = directions.shape[0]
-    origins = np.ascontiguousarray(np.broadcast_to(origin, directions.shape))
-    no_limit = np.full(n_rays, np.inf)
-    starts = _chunk_starts(n_rays)
-    starts, regions, _, offsets, segment_cells, t_enter, _ = batching.trace_regions(
-        grid, origins, directions, no_limit, grid.kernel_args(), starts, batching.scratch_segments)
-    cells, weights, t_first = aggregate_cells(grid, offsets, segment_cells, t_enter, directions[0],
-                                              ray_weights, chunks=(starts, regions))
+    cells, weights, t_first = aggregate_cone(grid, origin, directions, ray_weights)
     traces = None  # traced again if read: storing every segment cost more than aggregating
     return ConeTrace(cells, weights, t_first, directions, ray_weights, origin, grid, traces)
 

@@ -10,6 +10,7 @@ actually stops at, so an object hidden behind another is not reported as
 looked at.
 """
 
+import time
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,8 +19,9 @@ import numba
 import numpy as np
 
 from . import _validate as validate
+from ._batching import lap
 from ._files import atomic_write, npz_path
-from .cone import aggregate_cells, sample_rays
+from .cone import aggregate_cone, sample_rays
 from .grid import Grid
 from .kernels import occupancy as _kernels
 from .trace import trace_many
@@ -118,6 +120,7 @@ class OccupancyGrid:
         -------
         self
         """
+        start = time.perf_counter()
         points = validate.vectors("points", points)
         origin = validate.point("sensor_origin", sensor_origin)
         offsets = points - origin if np.any(origin) else points
@@ -145,18 +148,24 @@ class OccupancyGrid:
             # The egocentric case: every ray is radial.
             free_extent = np.zeros((threads, grid.n_theta * grid.n_phi), dtype=np.int64)
             hits = np.empty(distances.shape[0], dtype=np.int64)
+            start = lap("prepare", start)
             _kernels.mark_radial(np.ascontiguousarray(offsets), lengths, distances, is_hit,
                                  grid.kernel_args(), free_extent, hits)
+            start = lap("mark", start)
             _kernels.apply_radial(self.log_odds.reshape(-1), free_extent, hits,
                                   np.zeros(n_cells, dtype=np.uint8), grid.n_theta, grid.n_phi,
                                   *update)
+            lap("apply", start)
             return self
         words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
         free = words.view(np.uint8)  # the same memory, a byte per cell
         hits = np.empty(distances.shape[0], dtype=np.int64)
+        start = lap("prepare", start)
         _kernels.mark_scan(np.ascontiguousarray(origin), directions, distances, is_hit,
                            grid.kernel_args(), free, hits)
+        start = lap("mark", start)
         _kernels.apply_scan(self.log_odds.reshape(-1), free, words, hits, grid.n_rho, *update)
+        lap("apply", start)
         return self
 
     def decay(self, factor):
@@ -317,20 +326,17 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
     min_distance = float(min_distance)
     if not (np.isfinite(min_distance) and min_distance >= 0.0):
         raise ValueError(f"min_distance must be >= 0, got {min_distance!r}")
-    origin = validate.point("origin", origin)
-    directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
-                                      weighting, sigma)
-    traces = trace_many(grid, np.broadcast_to(origin, directions.shape), directions)
     free_below = float(free_below)
     if not 0.0 <= free_below <= 1.0:
         raise ValueError(f"free_below must be a probability in [0, 1], got {free_below!r}")
-    segment_values = _kernels.first_occupied(
-        traces.offsets, traces.cells, traces.t_exit, occupancy.log_odds.reshape(-1),
-        grid.n_theta, grid.n_phi, ray_weights, min_distance, unknown, free_below,
-    )
-    cells, values, t_first = aggregate_cells(grid, traces.offsets, traces.cells, traces.t_enter,
-                                        directions[0], segment_values, per_segment=True,
-                                        normalise=False)
+    origin = validate.point("origin", origin)
+    directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
+                                          weighting, sigma)
+    # Traced as trace_cone traces; each cell's first-occupied probability is
+    # summed in the same chunked pass that sums a cone's weights.
+    cells, values, t_first = aggregate_cone(
+        grid, origin, directions, ray_weights,
+        fixation=(occupancy.log_odds.reshape(-1), min_distance, unknown, free_below))
     if dense:
         out = np.zeros(grid.shape)
         out[tuple(cells.T)] = values

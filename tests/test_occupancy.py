@@ -231,3 +231,27 @@ def test_end_points_on_and_beside_every_shell_edge(grid, sensor):
     points = directions * radii[:, None]
     fast = OccupancyGrid(grid).integrate(points, sensor)
     np.testing.assert_array_equal(fast.log_odds, _reference_log_odds(grid, points, sensor))
+
+
+def test_fixation_probability_counts_a_re_entered_cell_once():
+    # A ray that leaves a cell and comes back (the dip at its closest approach,
+    # or a cone cell's concave side): the second entry adds nothing and does
+    # not dim the cells behind it again.
+    rng = np.random.default_rng(97)
+    origins = rng.uniform(-4.0, 4.0, size=(20000, 3))
+    directions = rng.normal(size=(20000, 3))
+    traces = lt.trace_many(GRID, origins, directions)
+    re_entering = [r for r in range(20000)
+                   if len(np.unique(traces[r].cells, axis=0)) < len(traces[r].cells)]
+    assert len(re_entering) >= 5
+    occupancy = OccupancyGrid(GRID)
+    occupancy.log_odds[...] = rng.uniform(-2.0, 2.0, size=GRID.shape).astype(np.float32)
+    for row in re_entering[:20]:
+        ray = traces[row]
+        got = fixation_probability(occupancy, origins[row], directions[row], free_below=0.3,
+                                   min_distance=0.5, dense=True)
+        want = first_occupied([(ray.cells, ray.t_exit)], np.ones(1), occupancy.log_odds,
+                              free_below=0.3, min_distance=0.5)
+        assert {c for c, v in want.items() if v > 0} == set(map(tuple, np.argwhere(got > 0)))
+        for cell, value in want.items():
+            assert got[cell] == pytest.approx(value, rel=1e-12, abs=1e-15)

@@ -7,6 +7,8 @@ densely (no hashing, no sort of all segments). The azimuth is shifted by
 box.
 """
 
+import math
+
 import numpy as np
 from numba import prange
 
@@ -20,27 +22,14 @@ def _shifted(j, j_shift, n_theta):
     return shifted - n_theta if shifted >= n_theta else shifted
 
 
-@jit(parallel=True)
-def aggregate_boxes(offsets, starts, firsts, cells, t_enter, weights, per_segment, n_rho, n_theta,
-               j_shift):
-    """Per cell: summed weight over the rays crossing it (each ray once), first t.
+@jit
+def _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
+    """Per shell, the (theta, phi) box the chunks' segments fill, laid end to end.
 
-    Parameters: CSR ``offsets`` (m + 1,) into ``cells`` (K, 3) and ``t_enter``
-    (K,): ray ``r``'s segments are ``offsets[r]:offsets[r + 1]``; ``starts``
-    (c + 1,): chunks of rays, one ``prange`` iteration each; ``firsts`` (c,):
-    where each chunk's first ray begins. Nothing else is read, so the arrays
-    may hold gaps between chunks: the regions a parallel trace fills, where
-    ``offsets[starts[c]]`` is the end of the previous region, not
-    ``firsts[c]``. ``weights``: what a segment adds to its
-    cell -- per segment (K,) if ``per_segment`` (a weighted probability),
-    else per ray (m,) (the ray's weight); only a ray's first segment in a
-    cell counts. Returns (cells (u, 3) int32, weights (u,) float64
-    unnormalised, t_first (u,) float64), unsorted.
-
-    Each radial shell gets its own dense (theta, phi) box: at one radius the
-    cone's footprint is a compact patch, so the boxes together stay small.
-    Each chunk fills its own copy of the boxes (no shared writes); the copies
-    are then summed, box by box.
+    Returns (low_j, low_k, span_k, base): shell ``i``'s box starts at
+    ``base[i]``, cell (i, j, k) is at ``base[i] + (j' - low_j[i]) * span_k[i] +
+    k - low_k[i]`` with ``j'`` the shifted azimuth; ``base[n_rho]`` is the
+    total. Each chunk finds its own extents (in parallel), then they are merged.
     """
     n_chunks = starts.shape[0] - 1
     big = np.iinfo(np.int64).max
@@ -57,37 +46,38 @@ def aggregate_boxes(offsets, starts, firsts, cells, t_enter, weights, per_segmen
             high_j[chunk, i] = max(high_j[chunk, i], j)
             low_k[chunk, i] = min(low_k[chunk, i], k)
             high_k[chunk, i] = max(high_k[chunk, i], k)
-    for chunk in range(1, n_chunks):
-        for i in range(n_rho):
+    span_k = np.zeros(n_rho, dtype=np.int64)
+    base = np.zeros(n_rho + 1, dtype=np.int64)
+    for i in range(n_rho):
+        for chunk in range(1, n_chunks):
             low_j[0, i] = min(low_j[0, i], low_j[chunk, i])
             high_j[0, i] = max(high_j[0, i], high_j[chunk, i])
             low_k[0, i] = min(low_k[0, i], low_k[chunk, i])
             high_k[0, i] = max(high_k[0, i], high_k[chunk, i])
-    base = np.zeros(n_rho + 1, dtype=np.int64)
-    for i in range(n_rho):
-        area = ((high_j[0, i] - low_j[0, i] + 1) * (high_k[0, i] - low_k[0, i] + 1)
-                if high_j[0, i] >= 0 else 0)
-        base[i + 1] = base[i] + area
-    size = base[n_rho]
-    weight = np.zeros((n_chunks, size))
-    first = np.full((n_chunks, size), np.inf)
-    last_ray = np.full((n_chunks, size), -1, dtype=np.int64)
-    for chunk in prange(n_chunks):
-        for ray in range(starts[chunk], starts[chunk + 1]):
-            begin = firsts[chunk] if ray == starts[chunk] else offsets[ray]
-            for seg in range(begin, offsets[ray + 1]):
-                i = cells[seg, 0]
-                j = _shifted(cells[seg, 1], j_shift, n_theta)
-                span_k = high_k[0, i] - low_k[0, i] + 1
-                box = base[i] + (j - low_j[0, i]) * span_k + (cells[seg, 2] - low_k[0, i])
-                # Branch-free: a ray re-entering a cell counts once; first reach is a min.
-                previous = last_ray[chunk, box]
-                value = weights[seg] if per_segment else weights[ray]
-                weight[chunk, box] += value * (previous != ray)
-                last_ray[chunk, box] = ray
-                first[chunk, box] = min(first[chunk, box], t_enter[seg])
+        if high_j[0, i] >= 0:
+            span_k[i] = high_k[0, i] - low_k[0, i] + 1
+            base[i + 1] = base[i] + (high_j[0, i] - low_j[0, i] + 1) * span_k[i]
+        else:
+            base[i + 1] = base[i]
+    return low_j[0], low_k[0], span_k, base
+
+
+@jit(inline="always")
+def _box(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift):
+    """The box index of segment ``seg``'s cell (see ``_box_layout``)."""
+    i = cells[seg, 0]
+    j = _shifted(cells[seg, 1], j_shift, n_theta)
+    return base[i] + (j - low_j[i]) * span_k[i] + (cells[seg, 2] - low_k[i])
+
+
+@jit
+def _box_cells(weight, first, last_ray, low_j, low_k, span_k, base, n_theta, j_shift):
+    """Sum the chunks' boxes into chunk 0's; return the boxes some ray reached as
+    (cells (u, 3) int32, weights (u,), t_first (u,)), unsorted."""
+    n_chunks = weight.shape[0]
+    n_rho = base.shape[0] - 1
     n_unique = 0
-    for box in range(size):
+    for box in range(base[n_rho]):
         for chunk in range(1, n_chunks):
             weight[0, box] += weight[chunk, box]
             first[0, box] = min(first[0, box], first[chunk, box])
@@ -98,16 +88,101 @@ def aggregate_boxes(offsets, starts, firsts, cells, t_enter, weights, per_segmen
     out_first = np.empty(n_unique)
     found = 0
     for i in range(n_rho):
-        span_k = high_k[0, i] - low_k[0, i] + 1
         for box in range(base[i], base[i + 1]):
             if last_ray[0, box] == -1:
                 continue
             offset = box - base[i]
             out_cells[found, 0] = i
-            out_cells[found, 1] = _shifted(offset // span_k + low_j[0, i], n_theta - j_shift,
+            out_cells[found, 1] = _shifted(offset // span_k[i] + low_j[i], n_theta - j_shift,
                                            n_theta)
-            out_cells[found, 2] = offset % span_k + low_k[0, i]
+            out_cells[found, 2] = offset % span_k[i] + low_k[i]
             out_weight[found] = weight[0, box]
             out_first[found] = first[0, box]
             found += 1
     return out_cells, out_weight, out_first
+
+
+@jit(parallel=True)
+def aggregate_boxes(offsets, starts, firsts, cells, t_enter, weights, n_rho, n_theta, j_shift):
+    """Per cell: summed weight over the rays crossing it (each ray once), first t.
+
+    Parameters: CSR ``offsets`` (m + 1,) into ``cells`` (K, 3) and ``t_enter``
+    (K,): ray ``r``'s segments are ``offsets[r]:offsets[r + 1]``; ``starts``
+    (c + 1,): chunks of rays, one ``prange`` iteration each; ``firsts`` (c,):
+    where each chunk's first ray begins. Nothing else is read, so the arrays
+    may hold gaps between chunks: the regions a parallel trace fills, where
+    ``offsets[starts[c]]`` is the end of the previous region, not
+    ``firsts[c]``. ``weights`` (m,): each ray's weight, added once to every
+    cell it crosses. Returns (cells (u, 3) int32, weights (u,) float64
+    unnormalised, t_first (u,) float64), unsorted.
+
+    Each radial shell gets its own dense (theta, phi) box: at one radius the
+    cone's footprint is a compact patch, so the boxes together stay small.
+    Each chunk fills its own copy of the boxes (no shared writes); the copies
+    are then summed, box by box.
+    """
+    low_j, low_k, span_k, base = _box_layout(offsets, starts, firsts, cells, n_rho, n_theta,
+                                             j_shift)
+    n_chunks = starts.shape[0] - 1
+    size = base[n_rho]
+    weight = np.zeros((n_chunks, size))
+    first = np.full((n_chunks, size), np.inf)
+    last_ray = np.full((n_chunks, size), -1, dtype=np.int64)
+    for chunk in prange(n_chunks):
+        for ray in range(starts[chunk], starts[chunk + 1]):
+            begin = firsts[chunk] if ray == starts[chunk] else offsets[ray]
+            for seg in range(begin, offsets[ray + 1]):
+                box = _box(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift)
+                # Branch-free: a ray re-entering a cell counts once; first reach is a min.
+                weight[chunk, box] += weights[ray] * (last_ray[chunk, box] != ray)
+                last_ray[chunk, box] = ray
+                first[chunk, box] = min(first[chunk, box], t_enter[seg])
+    return _box_cells(weight, first, last_ray, low_j, low_k, span_k, base, n_theta, j_shift)
+
+
+@jit(parallel=True)
+def fixation_boxes(offsets, starts, firsts, cells, t_enter, t_exit, weights, log_odds, n_theta,
+                   n_phi, min_distance, unknown, free_below, j_shift):
+    """Per cell: summed over rays, weight x P(it is the first occupied cell the ray meets).
+
+    The arrays and chunks as for ``aggregate_boxes``, plus ``t_exit`` and the
+    flat map ``log_odds``. Only the cells the rays cross are turned into
+    probabilities: ``unknown`` for a never-observed cell (log-odds 0), 0 below
+    ``free_below``. Along a ray, P_first(c) = p_c times the product of
+    (1 - p) over the distinct cells before c; a cell the ray re-enters adds
+    nothing (had it been occupied, the ray would have stopped at the first
+    entry), which the box's last ray tells in one load. Segments ending
+    within ``min_distance`` are skipped. ``t_first`` is every cell's first
+    reach, as in the cone.
+    """
+    n_rho = log_odds.shape[0] // (n_theta * n_phi)
+    low_j, low_k, span_k, base = _box_layout(offsets, starts, firsts, cells, n_rho, n_theta,
+                                             j_shift)
+    n_chunks = starts.shape[0] - 1
+    size = base[n_rho]
+    weight = np.zeros((n_chunks, size))
+    first = np.full((n_chunks, size), np.inf)
+    last_ray = np.full((n_chunks, size), -1, dtype=np.int64)
+    for chunk in prange(n_chunks):
+        for ray in range(starts[chunk], starts[chunk + 1]):
+            begin = firsts[chunk] if ray == starts[chunk] else offsets[ray]
+            clear = 1.0  # probability that nothing so far stopped the gaze
+            for seg in range(begin, offsets[ray + 1]):
+                box = _box(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift)
+                first[chunk, box] = min(first[chunk, box], t_enter[seg])
+                if t_exit[seg] <= min_distance:
+                    continue  # not counted, and not seen: met again beyond, it counts there
+                if last_ray[chunk, box] == ray:
+                    continue  # re-entered: counted at its first entry
+                last_ray[chunk, box] = ray
+                flat = (cells[seg, 0] * n_theta + cells[seg, 1]) * n_phi + cells[seg, 2]
+                value = log_odds[flat]
+                if value == 0:
+                    p = unknown
+                else:
+                    p = 1.0 / (1.0 + math.exp(-np.float64(value)))
+                    if p < free_below:
+                        p = 0.0
+                weight[chunk, box] += weights[ray] * p * clear
+                clear *= 1.0 - p
+    return _box_cells(weight, first, last_ray, low_j, low_k, span_k, base, n_theta, j_shift)

@@ -302,44 +302,6 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
 
 
 
-@jit
-def first_occupied(offsets, cells, t_exit, log_odds, n_theta, n_phi, ray_weights,
-                   min_distance, unknown, free_below):
-    """Per segment: weight x P(its cell is the first occupied cell the ray meets).
-
-    ``log_odds`` is the flat map; only the cells the rays cross are turned
-    into probabilities: ``unknown`` for a never-observed cell (log-odds 0), 0
-    below ``free_below``. Along a ray, P_first(c) = p_c times the product of
-    (1 - p) over the distinct cells before c; a cell the ray re-enters adds
-    nothing (had it been occupied, the ray would have stopped at the first
-    entry). Segments ending within ``min_distance`` are skipped.
-    """
-    out = np.zeros(cells.shape[0])
-    for ray in range(offsets.shape[0] - 1):
-        clear = 1.0  # probability that nothing so far stopped the gaze
-        for seg in range(offsets[ray], offsets[ray + 1]):
-            if t_exit[seg] <= min_distance:
-                continue
-            seen = False
-            for earlier in range(offsets[ray], seg):
-                if (cells[earlier, 0] == cells[seg, 0] and cells[earlier, 1] == cells[seg, 1]
-                        and cells[earlier, 2] == cells[seg, 2]):
-                    seen = True
-                    break
-            if seen:
-                continue
-            flat = (cells[seg, 0] * n_theta + cells[seg, 1]) * n_phi + cells[seg, 2]
-            if log_odds[flat] == 0:
-                p = unknown
-            else:
-                p = 1.0 / (1.0 + math.exp(-np.float64(log_odds[flat])))
-                if p < free_below:
-                    p = 0.0
-            out[seg] = ray_weights[ray] * p * clear
-            clear *= 1.0 - p
-    return out
-
-
 @jit(parallel=True)
 def mark_radial(points, lengths, distances, is_hit, grid, free_extent, hits):
     """The sensor at the grid's origin: every ray is radial, so its cells are one
