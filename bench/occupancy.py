@@ -8,8 +8,8 @@ scikit-image ships (343,274 valid pixels; skipped with a note when
 scikit-image is missing). Each is timed with the sensor at the map's centre
 (the egocentric case, radial rays) and 10 cm off it (the column walk), per
 thread count, best and median of ``--repeats`` scans with the phases of the
-best (prepare: validation and ray set-up in Python; mark: the parallel walk;
-apply: the parallel map update). The same-run baseline is ``trace_many`` of
+best (prepare: input checks and scratch in Python; mark: each ray's set-up
+and walk, in parallel; apply: the parallel map update). The same-run baseline is ``trace_many`` of
 the same rays up to their end points, on all threads. Writes
 bench/results/occupancy.json and occupancy.md.
 """
@@ -92,8 +92,8 @@ def main(argv=None):
                      f"| {r['threads']} | {r['best_ms']:.1f} | {r['median_ms']:.1f} "
                      f"| {r['speedup_over_one_thread']:.2f}x | {phases} "
                      f"| {r['trace_many_all_threads_best_ms']:.1f} |")
-    lines += ["", "speed-up: over the same scan on 1 thread; prepare runs on one thread "
-              "(numpy), mark and apply on all"]
+    lines += ["", "speed-up: over the same scan on 1 thread; prepare (input checks and "
+              "scratch, in Python) runs on one thread, mark and apply on all"]
     write_results("occupancy", argv, "\n".join(lines), {"threads": counts, "rows": rows})
 
 

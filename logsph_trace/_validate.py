@@ -11,6 +11,8 @@ import warnings
 
 import numpy as np
 
+from .kernels import locate as _locate
+
 _FULL_TURN_TOL = 1e-12
 
 
@@ -146,26 +148,15 @@ def vectors(name, value, rows=None):
     return np.ascontiguousarray(array)
 
 
-# A row's squared length must lie in this range to be summed as it is: beyond
-# it a component of ~1e154 overflows (a direction of 1e200 became (0, 0, 0))
-# or one of ~1e-154 underflows and loses its digits. Such rows, and only they,
-# are scaled by their largest component first.
-_SQUARES_LOW, _SQUARES_HIGH = 1e-300, 1e300
-
-
 def row_norms(vectors):
-    """Euclidean length of each row of an (m, 3) array, without overflow or underflow.
+    """Euclidean length of each row of an (m, 3) float64 array, without overflow or underflow.
 
-    Ordinary rows cost one pass and are bit-identical to ``sqrt(x^2 + y^2 + z^2)``.
+    Computed in parallel by ``kernels.locate.norm3``, the one definition every
+    path shares: ordinary rows are ``sqrt(x*x + y*y + z*z)``, rows beyond
+    ~1e154 or below ~1e-154 are scaled by their largest component first.
     """
-    squares = np.einsum("ij,ij->i", vectors, vectors)
-    norms = np.sqrt(squares)
-    extreme = ~((squares >= _SQUARES_LOW) & (squares <= _SQUARES_HIGH))
-    if np.any(extreme):
-        rows = vectors[extreme]
-        scale = np.max(np.abs(rows), axis=1)
-        scaled = rows / np.where(scale > 0.0, scale, 1.0)[:, None]
-        norms[extreme] = scale * np.sqrt(np.einsum("ij,ij->i", scaled, scaled))
+    norms = np.empty(vectors.shape[0])
+    _locate.row_norms(np.ascontiguousarray(vectors, dtype=np.float64), norms)
     return norms
 
 

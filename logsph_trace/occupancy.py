@@ -123,34 +123,23 @@ class OccupancyGrid:
         start = time.perf_counter()
         points = validate.vectors("points", points)
         origin = validate.point("sensor_origin", sensor_origin)
-        offsets = points - origin if np.any(origin) else points
-        distances = validate.row_norms(offsets)
-        if not np.all(distances > 0.0):  # a point at the sensor is no ray
-            keep = distances > 0.0
-            offsets, distances = offsets[keep], distances[keep]
-        radial = not np.any(origin)  # the sensor at the grid's centre
-        lengths = distances  # unit directions come from the full lengths, before max_range
-        if not radial:
-            directions = np.ascontiguousarray(offsets / lengths[:, None])
-        is_hit = np.ones(distances.shape[0], dtype=np.bool_)
-        if max_range is not None:
+        if max_range is None:
+            max_range = np.inf
+        else:
             max_range = validate.finite("max_range", max_range)
             if not max_range > 0:
                 raise ValueError(f"max_range must be a positive number, got {max_range!r}")
-            is_hit = distances <= max_range
-            distances = np.minimum(distances, max_range)
         grid = self.grid
         n_cells = int(np.prod(grid.shape))
         threads = numba.get_num_threads()
         update = (_logit(self.p_hit), _logit(self.p_miss), _logit(self.p_min), _logit(self.p_max))
-        distances = np.ascontiguousarray(distances)
-        if radial:
+        # Each ray's direction, length and hit are set up in the kernels, in parallel.
+        hits = np.empty(points.shape[0], dtype=np.int64)
+        if not np.any(origin):
             # The egocentric case: every ray is radial.
             free_extent = np.zeros((threads, grid.n_theta * grid.n_phi), dtype=np.int64)
-            hits = np.empty(distances.shape[0], dtype=np.int64)
             start = lap("prepare", start)
-            _kernels.mark_radial(np.ascontiguousarray(offsets), lengths, distances, is_hit,
-                                 grid.kernel_args(), free_extent, hits)
+            _kernels.mark_radial(points, max_range, grid.kernel_args(), free_extent, hits)
             start = lap("mark", start)
             _kernels.apply_radial(self.log_odds.reshape(-1), free_extent, hits,
                                   np.zeros(n_cells, dtype=np.uint8), grid.n_theta, grid.n_phi,
@@ -159,10 +148,8 @@ class OccupancyGrid:
             return self
         words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
         free = words.view(np.uint8)  # the same memory, a byte per cell
-        hits = np.empty(distances.shape[0], dtype=np.int64)
         start = lap("prepare", start)
-        _kernels.mark_scan(np.ascontiguousarray(origin), directions, distances, is_hit,
-                           grid.kernel_args(), free, hits)
+        _kernels.mark_scan(origin, points, max_range, grid.kernel_args(), free, hits)
         start = lap("mark", start)
         _kernels.apply_scan(self.log_odds.reshape(-1), free, words, hits, grid.n_rho, *update)
         lap("apply", start)

@@ -16,6 +16,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numba import prange
 
 from .._jit import jit
 
@@ -107,6 +108,38 @@ def corrected(value, edges, guess):
     while guess < n - 1 and value >= edges[guess + 1]:
         guess += 1
     return guess
+
+
+# A squared length in this range is summed as it is; beyond it a component of
+# ~1e154 overflows (a direction of 1e200 became (0, 0, 0)) or one of ~1e-154
+# underflows and loses its digits, so the row is scaled by its largest
+# component first.
+SQUARES_LOW = 1e-300
+SQUARES_HIGH = 1e300
+
+
+@jit(inline="always")
+def norm3(x, y, z):
+    """Euclidean length of (x, y, z) without overflow or underflow: the one
+    definition of a ray's length, shared by every path (``_validate.row_norms``,
+    the sensor kernels), so that all of them normalise a ray identically."""
+    squares = x * x + y * y + z * z
+    if SQUARES_LOW <= squares <= SQUARES_HIGH:
+        return math.sqrt(squares)
+    scale = max(abs(x), max(abs(y), abs(z)))
+    if scale == 0.0:
+        return 0.0
+    x /= scale
+    y /= scale
+    z /= scale
+    return scale * math.sqrt(x * x + y * y + z * z)
+
+
+@jit(parallel=True)
+def row_norms(vectors, out):
+    """``out[r] = norm3(vectors[r])`` for an (m, 3) float64 array."""
+    for row in prange(vectors.shape[0]):
+        out[row] = norm3(vectors[row, 0], vectors[row, 1], vectors[row, 2])
 
 
 @jit

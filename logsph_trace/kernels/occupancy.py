@@ -22,7 +22,7 @@ from .exact import (
     theta_plan,
     theta_times,
 )
-from .locate import BLOCK, LOG, corrected, locate, phi_zone, rho_zone, theta_zone
+from .locate import BLOCK, LOG, corrected, locate, norm3, phi_zone, rho_zone, theta_zone
 
 # Per-thread flag bits of a cell in one scan.
 FREE = 1
@@ -229,15 +229,31 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zo
     return -1
 
 
-@jit(parallel=True)
-def mark_scan(origin, directions, distances, is_hit, grid, free, hits):
-    """Walk every ray of a scan from one ``origin`` (see ``_walk_ray``).
+@jit(inline="always")
+def sensor_ray(points, row, ox, oy, oz, max_range):
+    """Ray ``row`` of a scan from (ox, oy, oz): its unit direction, its length cut
+    at ``max_range`` and whether it ends in a hit; a zero length (a point at
+    the sensor) is no ray. The direction is the offset over its ``norm3``, as
+    ``trace_many`` normalises it."""
+    x = points[row, 0] - ox
+    y = points[row, 1] - oy
+    z = points[row, 2] - oz
+    length = norm3(x, y, z)
+    if length == 0.0:
+        return 0.0, 0.0, 0.0, 0.0, False, False
+    return x / length, y / length, z / length, min(length, max_range), length <= max_range, True
 
+
+@jit(parallel=True)
+def mark_scan(origin, points, max_range, grid, free, hits):
+    """Walk the ray from ``origin`` to every point of a scan (see ``_walk_ray``).
+
+    ``max_range``: rays are cut there and end in no hit (``inf``: none).
     ``grid`` is the grid's ``GridArrays``. ``free`` (threads, n_cells) uint8
     has one row per thread, so no two threads write the same place;
     ``hits[row]`` gets ray ``row``'s hit cell (column-major index) or -1.
     """
-    n_rays = directions.shape[0]
+    n_rays = points.shape[0]
     ox = origin[0]
     oy = origin[1]
     oz = origin[2]
@@ -251,10 +267,11 @@ def mark_scan(origin, directions, distances, is_hit, grid, free, hits):
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            hits[row] = _walk_ray(
-                ox, oy, oz, directions[row, 0], directions[row, 1], directions[row, 2],
-                distances[row], is_hit[row], ir, jt, kp, grid, times, zones, lookups, row_free,
-            )
+            dx, dy, dz, distance, is_hit, is_ray = sensor_ray(points, row, ox, oy, oz, max_range)
+            hits[row] = -1
+            if is_ray:
+                hits[row] = _walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, ir, jt, kp, grid,
+                                      times, zones, lookups, row_free)
 
 
 @jit
@@ -303,14 +320,14 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
 
 
 @jit(parallel=True)
-def mark_radial(points, lengths, distances, is_hit, grid, free_extent, hits):
+def mark_radial(points, max_range, grid, free_extent, hits):
     """The sensor at the grid's origin: every ray is radial, so its cells are one
     (theta, phi) column, free up to the shell holding its end point.
 
-    The column is that of the unit direction ``points / lengths`` (the full
-    lengths), exactly as ``trace_many`` would trace it: a point on a cell's
-    edge may round to either side, the direction decides. An end cell the ray
-    enters less than the exact trace's ``snap`` before ``distances`` is a
+    The column is that of the unit direction (``sensor_ray``), exactly as
+    ``trace_many`` would trace it: a point on a cell's edge may round to
+    either side, the direction decides. An end cell the ray enters less than
+    the exact trace's ``snap`` before its (cut) length is a
     sliver, neither free nor hit; a ray ending exactly on a sphere ends in
     the cell below it, as the trace (whose crossing time ``sqrt(rho^2)`` is
     ``rho`` itself) stops before crossing. ``free_extent`` (threads, n_theta * n_phi)
@@ -335,14 +352,13 @@ def mark_radial(points, lengths, distances, is_hit, grid, free_extent, hits):
         thread = numba.get_thread_id()
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             hits[row] = -1
-            x = points[row, 0] / lengths[row]
-            y = points[row, 1] / lengths[row]
-            z = points[row, 2] / lengths[row]
+            x, y, z, distance, is_hit, is_ray = sensor_ray(points, row, 0.0, 0.0, 0.0, max_range)
+            if not is_ray:
+                continue
             j = theta_zone(x, z, theta_edges, theta_kind)
             k = phi_zone(x, y, z, phi_edges, phi_kind)
             if j >= n_theta or k < 0 or k >= n_phi:
                 continue  # outside the angular range: the ray never enters the region
-            distance = distances[row]
             if not log_shells:
                 shell = locate(distance, rho_edges, rho_kind)  # -1: gap, n_rho: beyond
             elif distance < rho_min:
@@ -356,14 +372,14 @@ def mark_radial(points, lengths, distances, is_hit, grid, free_extent, hits):
                 # The ray stops on the sphere below its shell, which the trace
                 # only crosses before t_max: it ends in the cell below.
                 shell -= 1
-                hit = is_hit[row] and shell >= 0
+                hit = is_hit and shell >= 0
                 free = shell if hit else shell + 1
             elif 0 <= shell < n_rho and distance - rho_edges[shell] <= snap:
                 shell -= 1  # the end cell is a sliver: the ray stops on its edge
                 hit = False
                 free = shell + 1
             else:
-                hit = is_hit[row] and 0 <= shell < n_rho
+                hit = is_hit and 0 <= shell < n_rho
                 free = min(shell, n_rho) if hit else min(shell + 1, n_rho)
             column = j * n_phi + k
             if free > free_extent[thread, column]:
