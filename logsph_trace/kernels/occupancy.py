@@ -217,10 +217,10 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zo
             if cell_in and stays:
                 return column * n_rho + i
             return -1
-        if t_theta <= t_phi:
-            done_t += 1
-        else:
-            done_p += 1
+        # Flag adds, not a branch on which family crosses (a coin toss per crossing).
+        theta_first = t_theta <= t_phi
+        done_t += theta_first
+        done_p += not theta_first
         column = zones[THETA, done_t] * n_phi + zones[PHI, done_p]
         column_in = zones[THETA, done_t] < n_theta and 0 <= zones[PHI, done_p] < n_phi
         t_now = t_next
