@@ -18,8 +18,11 @@ METHODS = ("exact", "bisect", "thibaudeau")
 PAPER_DEFAULT_T = 1.5531  # metres: the step the paper tuned for Algorithm 1 (section 3.2)
 
 
+DEVICES = ("cpu", "cuda")
+
+
 def trace_many(grid, origins, directions=None, method="exact", parallel=True,
-               default_t=PAPER_DEFAULT_T, max_iter=None, t_max=None, out=None):
+               default_t=PAPER_DEFAULT_T, max_iter=None, t_max=None, out=None, device="cpu"):
     """Trace many rays through ``grid``.
 
     Parameters
@@ -57,6 +60,12 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
         ``"exact"`` only: write into these arrays, kept from an earlier call,
         instead of fresh ones (no allocation, no first touch of new pages).
         The result is then views of ``out``, valid until its next use.
+    device : {"cpu", "cuda"}
+        ``"cuda"``: ``"exact"`` only, on an NVIDIA GPU through numba-cuda
+        (``pip install "logsph_trace[cuda]"``), the same traversal source as
+        the CPU's. The inputs are numpy arrays, copied to the GPU; the
+        result's arrays stay there (see :class:`Traces`). ``parallel`` does
+        not apply; ``out`` is not supported.
 
     Returns
     -------
@@ -66,14 +75,26 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     Raises
     ------
     ValueError
-        Wrong shapes, NaN or infinite values, zero directions, unknown method,
-        bad ``default_t``, ``max_iter`` or ``t_max``, ``out`` with another
-        method, or ``grid`` not a :class:`Grid` -- before any kernel runs.
+        Wrong shapes, NaN or infinite values, zero directions, unknown method
+        or device, bad ``default_t``, ``max_iter`` or ``t_max``, ``out`` with
+        another method or with ``device="cuda"``, or ``grid`` not a
+        :class:`Grid` -- before any kernel runs.
     TypeError
         ``out`` not a :class:`TraceBuffers`.
+    RuntimeError
+        ``device="cuda"`` without a usable GPU or numba-cuda.
     """
     validate.grid(grid)
     validate.choice("method", method, METHODS)
+    validate.choice("device", device, DEVICES)
+    if device == "cuda":
+        if method != "exact":
+            raise ValueError(f"device='cuda' supports method='exact' only, got {method!r}")
+        if out is not None:
+            raise ValueError("out is not supported with device='cuda'")
+        origins, directions = validate.rays(origins, directions)
+        t_max = validate.distances(t_max, origins.shape[0])
+        return _cuda_backend().trace_many(grid, origins, directions, t_max)
     if method == "bisect":
         default_t, max_iter = validate.bisect_options(grid, default_t, max_iter)
     for name, value in (("t_max", t_max), ("out", out)):
@@ -93,6 +114,18 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
         args = (grid.kernel_args(),)
         rows = _thibaudeau.thibaudeau_rows
     return batching.run_csr(rows.pick(parallel), origins, directions, args)
+
+
+def _cuda_backend():
+    """Import the CUDA backend on first use; raise one clear error without CUDA."""
+    try:
+        from . import _cuda
+    except ImportError as error:
+        raise RuntimeError(
+            f"device='cuda' needs numba-cuda (pip install 'logsph_trace[cuda]'): {error}"
+        ) from None
+    _cuda.require()
+    return _cuda
 
 
 def trace(grid, origin, direction, method="exact", default_t=PAPER_DEFAULT_T, max_iter=None,

@@ -59,6 +59,12 @@ class Traces:
         Ray ``r`` owns segments ``offsets[r]:offsets[r+1]``.
     cells : numpy.ndarray, int32, shape (K, 3)
     t_enter, t_exit : numpy.ndarray, float64, shape (K,)
+
+    From ``trace_many(..., device="cuda")`` the four arrays are numba-cuda
+    device arrays, in the same layout: they stay on the GPU and speak the
+    CUDA Array Interface (``cupy.asarray(traces.cells)``,
+    ``torch.as_tensor(traces.cells, device="cuda")``). :meth:`to_host`
+    copies them to numpy; ``traces[r]`` copies one ray's.
     """
 
     offsets: np.ndarray
@@ -77,8 +83,20 @@ class Traces:
             row += n_rays
         if not 0 <= row < n_rays:
             raise IndexError(f"ray {row} out of range for {n_rays} traces")
-        lo, hi = self.offsets[row], self.offsets[row + 1]
-        return Trace(self.cells[lo:hi], self.t_enter[lo:hi], self.t_exit[lo:hi])
+        lo, hi = int(self.offsets[row]), int(self.offsets[row + 1])
+        return Trace(*(_host(array[lo:hi]) for array in (self.cells, self.t_enter, self.t_exit)))
+
+    @property
+    def device(self):
+        """``"cuda"`` when the arrays are on a GPU, else ``"cpu"``."""
+        return "cpu" if isinstance(self.cells, np.ndarray) else "cuda"
+
+    def to_host(self):
+        """Return the same traces with numpy arrays (``self`` when they already are)."""
+        if self.device == "cpu":
+            return self
+        return Traces(*(_host(array) for array in (self.offsets, self.cells, self.t_enter,
+                                                   self.t_exit)))
 
     def __iter__(self):
         for row in range(len(self)):
@@ -86,16 +104,21 @@ class Traces:
 
     @property
     def counts(self):
-        """Number of segments of each ray, shape (m,)."""
-        return np.diff(self.offsets)
+        """Number of segments of each ray, shape (m,) (a numpy array)."""
+        return np.diff(_host(self.offsets))
 
     @property
     def ray_index(self):
-        """For each segment, the ray it belongs to, shape (K,)."""
+        """For each segment, the ray it belongs to, shape (K,) (a numpy array)."""
         return np.repeat(np.arange(len(self)), self.counts)
 
     def __repr__(self):
         return f"Traces({len(self)} rays, {self.cells.shape[0]} segments)"
+
+
+def _host(array):
+    """``array`` as numpy: device arrays are copied back, numpy arrays pass through."""
+    return array if isinstance(array, np.ndarray) else array.copy_to_host()
 
 
 class TraceBuffers:

@@ -1,0 +1,101 @@
+"""The CUDA backend (``device="cuda"``) against the CPU.
+
+CI has no GPU: the equality checks run under Numba's CUDA simulator in a
+subprocess (``NUMBA_ENABLE_CUDASIM=1`` and ``NUMBA_DISABLE_JIT=1``, so the
+per-ray code runs as Python inside the simulated kernels). On a machine with
+a GPU the same checks run on the device; without one that test skips.
+"""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numba
+import numpy as np
+import pytest
+from cuda_check import cases, compare, cpu_traces
+
+import logsph_trace as lt
+
+TESTS = Path(__file__).resolve().parent
+REPO = TESTS.parent
+GRID = lt.Grid(0.3, 10.0, 12, 24, 12)
+
+
+def _simulated(args, tmp_path):
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", NUMBA_DISABLE_JIT="1",
+               PYTHONPATH=os.pathsep.join([str(TESTS), str(REPO)]))
+    return subprocess.run([sys.executable, str(TESTS / "cuda_check.py"), *args],
+                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600)
+
+
+def test_simulated_gpu_traces_equal_the_cpu(tmp_path):
+    # Every grid kind, random rays (a third cut by t_max) and the near-singular
+    # classes on and just off their sets: cells identical, distances within
+    # 1e-12 relative.
+    path = tmp_path / "cases.npz"
+    np.savez(path, **cpu_traces(cases(n_random=150, n_singular=10)))
+    result = _simulated([str(path)], tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.strip() == "all equal"
+
+
+def test_simulated_gpu_in_small_batches_and_parts(tmp_path):
+    # 7 rays in flight and a memory budget of one ray a part: every loop of
+    # the batch runs many times, and the parts are joined on the device.
+    path = tmp_path / "cases.npz"
+    all_cases = cases(n_random=20, n_singular=1)
+    np.savez(path, **cpu_traces({key: all_cases[key] for key in ("log random", "log centre",
+                                                                  "paper random")}))
+    result = _simulated([str(path), "7"], tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_gpu_traces_equal_the_cpu_on_a_real_device():
+    cuda = pytest.importorskip("numba.cuda")
+    if numba.config.ENABLE_CUDASIM or not cuda.is_available():
+        pytest.skip("no CUDA GPU here")
+    problems = compare(cpu_traces(cases(n_random=5000, n_singular=100)))
+    assert not problems, problems
+
+
+def test_import_and_the_cpu_path_need_no_numba_cuda():
+    code = (
+        "import sys; sys.modules['numba.cuda'] = None\n"
+        "import numpy as np, logsph_trace as lt\n"
+        "grid = lt.Grid(0.3, 10.0, 8, 12, 6)\n"
+        "assert len(lt.trace_many(grid, [[0, 0, -5.0]], [[0, 0, 1.0]])[0]) > 0\n"
+        "try:\n"
+        "    lt.trace_many(grid, [[0, 0, -5.0]], [[0, 0, 1.0]], device='cuda')\n"
+        "except RuntimeError as error:\n"
+        "    print(error)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            cwd=REPO, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "needs numba-cuda (pip install 'logsph_trace[cuda]')" in result.stdout
+
+
+def test_cuda_without_a_gpu_is_one_clear_error():
+    cuda = pytest.importorskip("numba.cuda")
+    if cuda.is_available():
+        pytest.skip("a CUDA GPU (or the simulator) is available here")
+    with pytest.raises(RuntimeError, match="needs an NVIDIA GPU with a working driver"):
+        lt.trace_many(GRID, [[0, 0, -5.0]], [[0, 0, 1.0]], device="cuda")
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(device="gpu"), "device must be one of"),
+    (dict(device="cuda", method="bisect"), "supports method='exact' only"),
+    (dict(device="cuda", out=lt.TraceBuffers()), "out is not supported"),
+    (dict(device="cuda", t_max=-1.0), "t_max"),
+])
+def test_bad_cuda_options_are_value_errors_before_any_gpu_is_needed(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        lt.trace_many(GRID, [[0, 0, -5.0]], [[0, 0, 1.0]], **kwargs)
+
+
+def test_host_traces_answer_device_questions():
+    traces = lt.trace_many(GRID, [[0, 0, -5.0]], [[0, 0, 1.0]])
+    assert traces.device == "cpu" and traces.to_host() is traces
