@@ -10,13 +10,11 @@ scene's map (issue 12 asks for at most 1.2x the cone), and the packed-trace
 baseline. Writes bench/results/cone.json and cone.md.
 """
 
-import argparse
-
 import numba
 import numpy as np
 
 import logsph_trace as lt
-from bench.workload import thread_counts, timed, write_results
+from bench.workload import thread_arguments, timed, write_results
 from logsph_trace.scene import table_scene
 
 ORIGIN = (0.4, 1.5, 1.2)
@@ -47,12 +45,7 @@ PHASES = ("bound", "trace", "aggregate")
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", default=f"1,{numba.get_num_threads()}",
-                        help="comma-separated thread counts (default: 1 and all)")
-    parser.add_argument("--repeats", type=int, default=50)
-    args = parser.parse_args(argv)
-    counts = thread_counts(args.threads)
+    args, counts = thread_arguments(__doc__.splitlines()[0], 50, argv)
     most = numba.get_num_threads()
     grid = lt.Grid(0.3, 10.0, 64, 360, 180)
     occupancy = fixation_map(grid)

@@ -14,13 +14,11 @@ the same rays up to their end points, on all threads. Writes
 bench/results/occupancy.json and occupancy.md.
 """
 
-import argparse
-
 import numba
 import numpy as np
 
 import logsph_trace as lt
-from bench.workload import motorcycle_points, thread_counts, timed, write_results
+from bench.workload import motorcycle_points, thread_arguments, timed, write_results
 from logsph_trace.scene import table_scene
 
 SENSORS = (("at the centre", (0.0, 0.0, 0.0)), ("10 cm off", (0.06, 0.08, 0.0)))
@@ -41,12 +39,7 @@ def scans():
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", default=f"1,{numba.get_num_threads()}",
-                        help="comma-separated thread counts (default: 1 and all)")
-    parser.add_argument("--repeats", type=int, default=10)
-    args = parser.parse_args(argv)
-    counts = thread_counts(args.threads)
+    args, counts = thread_arguments(__doc__.splitlines()[0], 10, argv)
     most = numba.get_num_threads()
     grid = lt.Grid(0.3, 10.0, 64, 360, 180)
     rows = []

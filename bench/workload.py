@@ -61,6 +61,20 @@ def timed(call, best=None, keep=lambda result: None):
     return best
 
 
+def thread_arguments(description, repeats, argv):
+    """Parse a benchmark's ``--threads`` and ``--repeats``; return (args, thread counts)."""
+    import argparse
+
+    import numba
+
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--threads", default=f"1,{numba.get_num_threads()}",
+                        help="comma-separated thread counts (default: 1 and all)")
+    parser.add_argument("--repeats", type=int, default=repeats)
+    args = parser.parse_args(argv)
+    return args, thread_counts(args.threads)
+
+
 def thread_counts(text):
     """``"1,2,4"`` -> [1, 2, 4], always with 1 and capped at Numba's thread count."""
     import numba

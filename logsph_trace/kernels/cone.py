@@ -62,6 +62,19 @@ def _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
     return low_j[0], low_k[0], span_k, base
 
 
+@jit
+def _boxes(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
+    """The layout (``_box_layout``) and, per chunk, its empty boxes: summed
+    value 0, first reach inf, last ray -1 (none)."""
+    layout = _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift)
+    n_chunks = starts.shape[0] - 1
+    size = layout[3][n_rho]
+    weight = np.zeros((n_chunks, size))
+    first = np.full((n_chunks, size), np.inf)
+    last_ray = np.full((n_chunks, size), -1, dtype=np.int64)
+    return layout, weight, first, last_ray
+
+
 @jit(inline="always")
 def _box(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift):
     """The box index of segment ``seg``'s cell (see ``_box_layout``)."""
@@ -121,14 +134,9 @@ def aggregate_boxes(offsets, starts, firsts, cells, t_enter, weights, n_rho, n_t
     Each chunk fills its own copy of the boxes (no shared writes); the copies
     are then summed, box by box.
     """
-    low_j, low_k, span_k, base = _box_layout(offsets, starts, firsts, cells, n_rho, n_theta,
-                                             j_shift)
-    n_chunks = starts.shape[0] - 1
-    size = base[n_rho]
-    weight = np.zeros((n_chunks, size))
-    first = np.full((n_chunks, size), np.inf)
-    last_ray = np.full((n_chunks, size), -1, dtype=np.int64)
-    for chunk in prange(n_chunks):
+    (low_j, low_k, span_k, base), weight, first, last_ray = _boxes(
+        offsets, starts, firsts, cells, n_rho, n_theta, j_shift)
+    for chunk in prange(starts.shape[0] - 1):
         for ray in range(starts[chunk], starts[chunk + 1]):
             begin = firsts[chunk] if ray == starts[chunk] else offsets[ray]
             for seg in range(begin, offsets[ray + 1]):
@@ -156,14 +164,9 @@ def fixation_boxes(offsets, starts, firsts, cells, t_enter, t_exit, weights, log
     reach, as in the cone.
     """
     n_rho = log_odds.shape[0] // (n_theta * n_phi)
-    low_j, low_k, span_k, base = _box_layout(offsets, starts, firsts, cells, n_rho, n_theta,
-                                             j_shift)
-    n_chunks = starts.shape[0] - 1
-    size = base[n_rho]
-    weight = np.zeros((n_chunks, size))
-    first = np.full((n_chunks, size), np.inf)
-    last_ray = np.full((n_chunks, size), -1, dtype=np.int64)
-    for chunk in prange(n_chunks):
+    (low_j, low_k, span_k, base), weight, first, last_ray = _boxes(
+        offsets, starts, firsts, cells, n_rho, n_theta, j_shift)
+    for chunk in prange(starts.shape[0] - 1):
         for ray in range(starts[chunk], starts[chunk + 1]):
             begin = firsts[chunk] if ray == starts[chunk] else offsets[ray]
             clear = 1.0  # probability that nothing so far stopped the gaze
