@@ -70,6 +70,20 @@ def _last_at_or_below(value, edges):
 @jit
 def locate(value, edges, kind):
     """Zone of ``value`` among strictly increasing ``edges`` (see module doc)."""
+    return locate_in(value, edges, kind, log_cells(edges) if kind == LOG else 0.0)
+
+
+@jit(inline="always")
+def log_cells(edges):
+    """Cells per unit of ``log(value / edges[0])`` on log-spaced ``edges``."""
+    n = edges.shape[0] - 1
+    return n / math.log(edges[n] / edges[0])
+
+
+@jit
+def locate_in(value, edges, kind, per_log):
+    """``locate`` with log spacing's constant ``per_log = log_cells(edges)`` given
+    (unused for other kinds), so a loop over many values takes its logarithm once."""
     n = edges.shape[0] - 1
     lo = edges[0]
     hi = edges[n]
@@ -83,21 +97,13 @@ def locate(value, edges, kind):
     if kind == UNIFORM:
         guess = int((value - lo) / (hi - lo) * n)
     elif kind == LOG:
-        guess = int(math.log(value / lo) / math.log(hi / lo) * n)
+        guess = int(math.log(value / lo) * per_log)
     elif kind == PAPER:
         offset = value - lo
         base = edges[1] - lo
         guess = int(math.log(offset) / math.log(base)) if offset > 1.0 else 0
     else:
         guess = _last_at_or_below(value, edges)
-    return corrected(value, edges, guess)
-
-
-@jit(inline="always")
-def corrected(value, edges, guess):
-    """The cell of ``edges[0] <= value <= edges[-1]``, from any ``guess``: clamped
-    to the cells, then moved until the stored edges agree."""
-    n = edges.shape[0] - 1
     if guess < 0:
         guess = 0
     if guess > n - 1:

@@ -22,7 +22,16 @@ from .exact import (
     theta_plan,
     theta_times,
 )
-from .locate import BLOCK, LOG, corrected, locate, norm3, phi_zone, rho_zone, theta_zone
+from .locate import (
+    BLOCK,
+    LOG,
+    locate_in,
+    log_cells,
+    norm3,
+    phi_zone,
+    rho_zone,
+    theta_zone,
+)
 
 # Per-thread flag bits of a cell in one scan.
 FREE = 1
@@ -343,11 +352,8 @@ def mark_radial(points, max_range, grid, free_extent, hits):
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
     snap = 1e-12 * rho_edges[n_rho]
-    # locate()'s guess for log shells, with its constant logarithm taken once
-    # (it was a third of a ray's time); corrected against the edges as there.
-    log_shells = rho_kind == LOG
-    rho_min = rho_edges[0]
-    shells_per_log = n_rho / math.log(rho_edges[n_rho] / rho_min) if log_shells else 0.0
+    # Log shells' constant logarithm, taken once (it was a third of a ray's time).
+    per_log = log_cells(rho_edges) if rho_kind == LOG else 0.0
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         thread = numba.get_thread_id()
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
@@ -359,15 +365,7 @@ def mark_radial(points, max_range, grid, free_extent, hits):
             k = phi_zone(x, y, z, phi_edges, phi_kind)
             if j >= n_theta or k < 0 or k >= n_phi:
                 continue  # outside the angular range: the ray never enters the region
-            if not log_shells:
-                shell = locate(distance, rho_edges, rho_kind)  # -1: gap, n_rho: beyond
-            elif distance < rho_min:
-                shell = -1
-            elif distance > rho_edges[n_rho]:
-                shell = n_rho
-            else:
-                shell = corrected(distance, rho_edges,
-                                  int(math.log(distance / rho_min) * shells_per_log))
+            shell = locate_in(distance, rho_edges, rho_kind, per_log)  # -1: gap, n_rho: beyond
             if 0 <= shell < n_rho and distance == rho_edges[shell]:
                 # The ray stops on the sphere below its shell, which the trace
                 # only crosses before t_max: it ends in the cell below.
