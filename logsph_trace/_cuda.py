@@ -19,10 +19,10 @@ to the host:
 
 The per-ray scratch (crossing times and zones, ``(3, size)`` each) is laid
 out ray-fastest, ``(3, size, rays in flight)``, so neighbouring threads read
-neighbouring words, and is allocated for at most ``RAYS_IN_FLIGHT`` rays.
-Rays are taken in super-batches whose regions fit in a share of the free
-device memory; each super-batch's output is exact, and they are joined at
-the end.
+neighbouring words, and is allocated for at most ``RAYS_IN_FLIGHT`` rays,
+fewer when it would not fit in ``MEMORY_SHARE`` of the free device memory.
+Rays are taken in parts whose regions fit in that share too; each part's
+output is exact, and the parts are joined at the end.
 """
 
 import math
@@ -36,7 +36,7 @@ from .traces import Traces
 THREADS = 128  # threads per block
 SCAN_CHUNK = 32  # values one thread of the prefix sum adds up in order
 RAYS_IN_FLIGHT = 65_536  # rays whose scratch is on the device at once
-MEMORY_SHARE = 0.5  # of the free device memory, what one super-batch's regions may take
+MEMORY_SHARE = 0.5  # of the free device memory, what the scratch or one part's regions may take
 SEGMENT_BYTES = 4 * 3 + 8 + 8  # a cell, t_enter and t_exit
 
 
@@ -181,7 +181,9 @@ def trace_many(grid, origins, directions, t_max):
     d_origins = cuda.to_device(origins)
     d_directions = cuda.to_device(directions)
     d_t_max = cuda.to_device(np.ascontiguousarray(t_max, dtype=np.float64))
-    in_flight = max(1, min(RAYS_IN_FLIGHT, n_rays))
+    # Rays in flight: their scratch (times and zones) in a share of the free memory.
+    per_ray = 2 * 3 * size * 8 + 8 * 8
+    in_flight = max(1, min(RAYS_IN_FLIGHT, n_rays, int(_free_bytes() * MEMORY_SHARE) // per_ray))
     times = cuda.device_array((3, size, in_flight), dtype=np.float64)
     zones = cuda.device_array((3, size, in_flight), dtype=np.int64)
     lookups = cuda.device_array((in_flight, 8), dtype=np.int64)

@@ -92,9 +92,6 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
             raise ValueError(f"device='cuda' supports method='exact' only, got {method!r}")
         if out is not None:
             raise ValueError("out is not supported with device='cuda'")
-        origins, directions = validate.rays(origins, directions)
-        t_max = validate.distances(t_max, origins.shape[0])
-        return _cuda_backend().trace_many(grid, origins, directions, t_max)
     if method == "bisect":
         default_t, max_iter = validate.bisect_options(grid, default_t, max_iter)
     for name, value in (("t_max", t_max), ("out", out)):
@@ -106,6 +103,8 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     parallel = bool(parallel)
     if method == "exact":
         t_max = validate.distances(t_max, origins.shape[0])
+        if device == "cuda":
+            return _cuda_backend().trace_many(grid, origins, directions, t_max)
         return batching.run_exact(grid, origins, directions, t_max, parallel, out)
     if method == "bisect":
         args = (grid.kernel_args(), default_t, max_iter)

@@ -81,8 +81,9 @@ if __name__ == "__main__":
 
     with np.load(sys.argv[1]) as saved:
         arrays = dict(saved)
-    if len(sys.argv) > 2:  # force several rays in flight and super-batches
+    if len(sys.argv) > 2:  # few rays in flight: many rounds of the trace loop
         _cuda.RAYS_IN_FLIGHT = int(sys.argv[2])
+    if len(sys.argv) > 3:  # no memory to spare: one ray in flight, one part per ray
         _cuda.MEMORY_SHARE = 1e-15
     problems = compare(arrays)
     print("\n".join(problems) if problems else "all equal")

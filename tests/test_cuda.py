@@ -41,14 +41,16 @@ def test_simulated_gpu_traces_equal_the_cpu(tmp_path):
     assert result.stdout.strip() == "all equal"
 
 
-def test_simulated_gpu_in_small_batches_and_parts(tmp_path):
-    # 7 rays in flight and a memory budget of one ray a part: every loop of
-    # the batch runs many times, and the parts are joined on the device.
+@pytest.mark.parametrize("limits", [["7"], ["7", "tiny"]])
+def test_simulated_gpu_in_small_batches_and_parts(tmp_path, limits):
+    # 7 rays in flight; then no memory to spare (one ray in flight, a part per
+    # ray): every loop of the batch runs many times, and the parts are joined
+    # on the device.
     path = tmp_path / "cases.npz"
     all_cases = cases(n_random=20, n_singular=1)
     np.savez(path, **cpu_traces({key: all_cases[key] for key in ("log random", "log centre",
                                                                   "paper random")}))
-    result = _simulated([str(path), "7"], tmp_path)
+    result = _simulated([str(path), *limits], tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
 
 
