@@ -22,14 +22,16 @@ def _shifted(j, j_shift, n_theta):
     return shifted - n_theta if shifted >= n_theta else shifted
 
 
-@jit
+@jit(inline="always")
 def _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
     """Per shell, the (theta, phi) box the chunks' segments fill, laid end to end.
 
     Returns (low_j, low_k, span_k, base): shell ``i``'s box starts at
     ``base[i]``, cell (i, j, k) is at ``base[i] + (j' - low_j[i]) * span_k[i] +
     k - low_k[i]`` with ``j'`` the shifted azimuth; ``base[n_rho]`` is the
-    total. Each chunk finds its own extents (in parallel), then they are merged.
+    total. Each chunk finds its own extents (in parallel: the function is
+    inlined into its parallel callers, so its ``prange`` is theirs), then
+    they are merged.
     """
     n_chunks = starts.shape[0] - 1
     big = np.iinfo(np.int64).max
@@ -48,7 +50,7 @@ def _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
             high_k[chunk, i] = max(high_k[chunk, i], k)
     span_k = np.zeros(n_rho, dtype=np.int64)
     base = np.zeros(n_rho + 1, dtype=np.int64)
-    for i in range(n_rho):
+    for i in range(n_rho):  # n_rho x n_chunks values: too few to share out
         for chunk in range(1, n_chunks):
             low_j[0, i] = min(low_j[0, i], low_j[chunk, i])
             high_j[0, i] = max(high_j[0, i], high_j[chunk, i])
@@ -62,16 +64,22 @@ def _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
     return low_j[0], low_k[0], span_k, base
 
 
-@jit
+@jit(inline="always")
 def _boxes(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
     """The layout (``_box_layout``) and, per chunk, its empty boxes: summed
-    value 0, first reach inf, last ray -1 (none)."""
+    value 0, first reach inf, last ray -1 (none). Each chunk's boxes are
+    filled by the thread that will use them (first touch on its own core)."""
     layout = _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift)
     n_chunks = starts.shape[0] - 1
     size = layout[3][n_rho]
-    weight = np.zeros((n_chunks, size))
-    first = np.full((n_chunks, size), np.inf)
-    last_ray = np.full((n_chunks, size), -1, dtype=np.int64)
+    weight = np.empty((n_chunks, size))
+    first = np.empty((n_chunks, size))
+    last_ray = np.empty((n_chunks, size), dtype=np.int64)
+    for chunk in prange(n_chunks):
+        for box in range(size):
+            weight[chunk, box] = 0.0
+            first[chunk, box] = np.inf
+            last_ray[chunk, box] = -1
     return layout, weight, first, last_ray
 
 
@@ -83,24 +91,32 @@ def _box(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift):
     return base[i] + (j - low_j[i]) * span_k[i] + (cells[seg, 2] - low_k[i])
 
 
-@jit
+@jit(inline="always")
 def _box_cells(weight, first, last_ray, low_j, low_k, span_k, base, n_theta, j_shift):
     """Sum the chunks' boxes into chunk 0's; return the boxes some ray reached as
-    (cells (u, 3) int32, weights (u,), t_first (u,)), unsorted."""
+    (cells (u, 3) int32, weights (u,), t_first (u,)), unsorted: shell by shell,
+    in box order. Both passes run one shell per ``prange`` iteration (inlined
+    into the parallel callers); the chunks are summed in chunk order, so the
+    sums do not depend on the thread count."""
     n_chunks = weight.shape[0]
     n_rho = base.shape[0] - 1
-    n_unique = 0
-    for box in range(base[n_rho]):
-        for chunk in range(1, n_chunks):
-            weight[0, box] += weight[chunk, box]
-            first[0, box] = min(first[0, box], first[chunk, box])
-            last_ray[0, box] = max(last_ray[0, box], last_ray[chunk, box])
-        n_unique += last_ray[0, box] != -1
-    out_cells = np.empty((n_unique, 3), dtype=np.int32)
-    out_weight = np.empty(n_unique)
-    out_first = np.empty(n_unique)
-    found = 0
+    reached = np.zeros(n_rho + 1, dtype=np.int64)  # per shell, then where each shell's start
+    for i in prange(n_rho):
+        count = 0
+        for box in range(base[i], base[i + 1]):
+            for chunk in range(1, n_chunks):
+                weight[0, box] += weight[chunk, box]
+                first[0, box] = min(first[0, box], first[chunk, box])
+                last_ray[0, box] = max(last_ray[0, box], last_ray[chunk, box])
+            count += last_ray[0, box] != -1
+        reached[i + 1] = count
     for i in range(n_rho):
+        reached[i + 1] += reached[i]
+    out_cells = np.empty((reached[n_rho], 3), dtype=np.int32)
+    out_weight = np.empty(reached[n_rho])
+    out_first = np.empty(reached[n_rho])
+    for i in prange(n_rho):
+        found = reached[i]
         for box in range(base[i], base[i + 1]):
             if last_ray[0, box] == -1:
                 continue
