@@ -30,7 +30,8 @@ import math
 import numpy as np
 from numba import cuda
 
-from .kernels import exact
+from .kernels import cone as _cone
+from .kernels import exact, locate
 from .traces import Traces
 
 THREADS = 128  # threads per block
@@ -175,12 +176,15 @@ def trace_many(grid, origins, directions, t_max):
     speak the CUDA Array Interface); ``Traces.to_host()`` copies them back.
     """
     require()
-    n_rays = origins.shape[0]
+    return _trace(grid, cuda.to_device(origins), cuda.to_device(directions),
+                  cuda.to_device(np.ascontiguousarray(t_max, dtype=np.float64)))
+
+
+def _trace(grid, d_origins, d_directions, d_t_max):
+    """``trace_many`` of rays already on the device."""
+    n_rays = d_origins.shape[0]
     args = _device_grid(grid)
     size = int(exact.scratch_size(*grid.shape))
-    d_origins = cuda.to_device(origins)
-    d_directions = cuda.to_device(directions)
-    d_t_max = cuda.to_device(np.ascontiguousarray(t_max, dtype=np.float64))
     # Rays in flight: their scratch (times and zones) in a share of the free memory.
     per_ray = 2 * 3 * size * 8 + 8 * 8
     in_flight = max(1, min(RAYS_IN_FLIGHT, n_rays, int(_free_bytes() * MEMORY_SHARE) // per_ray))
@@ -256,3 +260,175 @@ def _join(parts):
             t_exit[at:at + n].copy_to_device(part_exit)
         at += n
     return cells, t_enter, t_exit
+
+
+# ---- points ---------------------------------------------------------------------------------
+
+@cuda.jit
+def _cells_of_kernel(points, grid, out):
+    """Point ``row`` (thread): its cell, as the CPU's ``locate.cells_of_points``."""
+    row = cuda.grid(1)
+    if row < points.shape[0]:
+        out[row, 0], out[row, 1], out[row, 2] = locate.cell_of_point(
+            points[row, 0], points[row, 1], points[row, 2], grid.rho_edges, grid.rho_kind,
+            grid.theta_edges, grid.theta_kind, grid.phi_edges, grid.phi_kind)
+
+
+def cells_of(grid, points):
+    """Look up checked points (C-contiguous (M, 3) float64): a device array (M, 3) int32."""
+    require()
+    out = cuda.device_array((points.shape[0], 3), dtype=np.int32)
+    if points.shape[0]:
+        _launch(_cells_of_kernel, points.shape[0], cuda.to_device(points), _device_grid(grid), out)
+    return out
+
+
+# ---- cones ----------------------------------------------------------------------------------
+#
+# A cone's cells are aggregated as on the CPU (``kernels.cone``): at each
+# shell the cone's cells fill a (theta, phi) box, the boxes of all cones laid
+# end to end. One thread per ray: the extents of the boxes (atomic min and
+# max), then each ray's weight added once to every box it crosses (atomic
+# adds, so the weights' last bits depend on the order the GPU runs rays in)
+# and the first reach (atomic min), then one thread per shell writes the
+# reached boxes as cells. A ray re-entering a cell is found in a bitmap of
+# the boxes of its cone, one per ray in flight.
+
+BIG = np.iinfo(np.int64).max
+
+
+@cuda.jit
+def _extent_kernel(offsets, cells, ray_cone, j_shifts, n_theta, low_j, high_j, low_k, high_k):
+    """Ray ``ray`` (thread): widen its cone's per-shell boxes to hold its cells."""
+    ray = cuda.grid(1)
+    if ray < offsets.shape[0] - 1:
+        cone = ray_cone[ray]
+        for seg in range(offsets[ray], offsets[ray + 1]):
+            i = cells[seg, 0]
+            j = _cone.shifted(cells[seg, 1], j_shifts[cone], n_theta)
+            k = np.int64(cells[seg, 2])
+            cuda.atomic.min(low_j, (cone, i), j)
+            cuda.atomic.max(high_j, (cone, i), j)
+            cuda.atomic.min(low_k, (cone, i), k)
+            cuda.atomic.max(high_k, (cone, i), k)
+
+
+@cuda.jit
+def _weigh_kernel(first_ray, offsets, cells, t_enter, ray_cone, ray_weights, j_shifts, n_theta,
+                  low_j, low_k, span_k, base, seen, weight, first, reached):
+    """Ray ``first_ray + k`` (thread k): its weight once into every box it crosses.
+
+    ``seen`` (words, rays in flight) uint32: thread k's bitmap of its cone's
+    boxes, in column k (neighbouring threads, neighbouring words).
+    """
+    k = cuda.grid(1)
+    ray = first_ray + k
+    if k < seen.shape[1] and ray < offsets.shape[0] - 1:
+        cone = ray_cone[ray]
+        start = base[cone, 0]
+        for word in range((base[cone, base.shape[1] - 1] - start + 31) // 32):
+            seen[word, k] = 0
+        for seg in range(offsets[ray], offsets[ray + 1]):
+            box = _cone.box_of(cells, seg, low_j[cone], low_k[cone], span_k[cone], base[cone],
+                               n_theta, j_shifts[cone])
+            cuda.atomic.min(first, box, t_enter[seg])
+            word = (box - start) // 32
+            bit = np.uint32(1) << np.uint32((box - start) % 32)
+            if (seen[word, k] & bit) == 0:  # not a re-entry
+                seen[word, k] |= bit
+                cuda.atomic.add(weight, box, ray_weights[ray])
+                reached[box] = 1
+
+
+@cuda.jit
+def _box_cells_kernel(low_j, low_k, span_k, base, j_shifts, n_theta, weight, first, at,
+                      out_cells, out_weight, out_first):
+    """Shell ``i`` of cone ``c`` (thread ``c * n_rho + i``): its reached boxes as cells.
+
+    They go to ``at[box]`` on, ``at`` being the exclusive scan of the reached flags.
+    """
+    t = cuda.grid(1)
+    n_rho = base.shape[1] - 1
+    cone = t // n_rho
+    i = t - cone * n_rho
+    if cone < base.shape[0]:
+        for box in range(base[cone, i], base[cone, i + 1]):
+            found = at[box]
+            if at[box + 1] != found:
+                out_cells[found, 0] = i
+                out_cells[found, 1], out_cells[found, 2] = _cone.unbox(
+                    box, i, low_j[cone], low_k[cone], span_k[cone], base[cone], n_theta,
+                    j_shifts[cone])
+                out_weight[found] = weight[box]
+                out_first[found] = first[box]
+
+
+@cuda.jit
+def _gather_kernel(values, index, out):
+    """``out[t] = values[index[t]]``."""
+    t = cuda.grid(1)
+    if t < index.shape[0]:
+        out[t] = values[index[t]]
+
+
+def aggregate_cones(grid, origins, directions, ray_weights, counts, j_shifts):
+    """Trace cones' rays on the GPU and aggregate each cone's cells there.
+
+    ``origins``, ``directions`` (m, 3) and ``ray_weights`` (m,): every ray of
+    every cone, cone after cone, ``counts[c]`` rays for cone ``c``;
+    ``j_shifts`` (c,): each cone's azimuth shift. Returns, per cone, its
+    (cells, summed weights, t_first) on the host, unsorted (shell by shell,
+    in box order, as the CPU's ``aggregate_boxes``).
+    """
+    require()
+    n_cones, n_rho, n_theta = len(counts), grid.n_rho, grid.n_theta
+    ray_cone = np.repeat(np.arange(n_cones, dtype=np.int64), counts)
+    traces = _trace(grid, cuda.to_device(origins), cuda.to_device(directions),
+                    cuda.to_device(np.full(origins.shape[0], np.inf)))
+    d_ray_cone = cuda.to_device(ray_cone)
+    d_j_shifts = cuda.to_device(np.asarray(j_shifts, dtype=np.int64))
+    extents = [np.full((n_cones, n_rho), BIG, dtype=np.int64),
+               np.full((n_cones, n_rho), -1, dtype=np.int64)]
+    low_j, high_j, low_k, high_k = (cuda.to_device(extents[e]) for e in (0, 1, 0, 1))
+    n_rays = origins.shape[0]
+    _launch(_extent_kernel, n_rays, traces.offsets, traces.cells, d_ray_cone, d_j_shifts,
+            n_theta, low_j, high_j, low_k, high_k)
+
+    # The layout, on the host: 4 x cones x shells numbers.
+    low_j, high_j, low_k, high_k = (a.copy_to_host() for a in (low_j, high_j, low_k, high_k))
+    span_k = np.zeros((n_cones, n_rho), dtype=np.int64)
+    base = np.zeros((n_cones, n_rho + 1), dtype=np.int64)
+    for cone in range(n_cones):
+        span_k[cone], base[cone] = _cone.box_bases(low_j[cone], high_j[cone], low_k[cone],
+                                                   high_k[cone])
+    sizes = base[:, n_rho].copy()
+    base += np.concatenate(([0], np.cumsum(sizes)[:-1]))[:, None]  # cones end to end
+    total = int(sizes.sum())
+
+    d_low_j, d_low_k, d_span_k, d_base = (cuda.to_device(a) for a in (low_j, low_k, span_k, base))
+    weight = cuda.to_device(np.zeros(max(total, 1)))
+    first = cuda.to_device(np.full(max(total, 1), np.inf))
+    reached = cuda.to_device(np.zeros(max(total, 1), dtype=np.int64))
+    words = max(1, (int(sizes.max(initial=0)) + 31) // 32)
+    share = int(_free_bytes() * MEMORY_SHARE)
+    in_flight = max(1, min(RAYS_IN_FLIGHT, n_rays, share // (4 * words)))
+    seen = cuda.device_array((words, in_flight), dtype=np.uint32)
+    d_weights = cuda.to_device(np.ascontiguousarray(ray_weights, dtype=np.float64))
+    for first_ray in range(0, n_rays, in_flight):
+        _launch(_weigh_kernel, in_flight, first_ray, traces.offsets, traces.cells,
+                traces.t_enter, d_ray_cone, d_weights, d_j_shifts, n_theta, d_low_j, d_low_k,
+                d_span_k, d_base, seen, weight, first, reached)
+    at = exclusive_scan(reached[:total])
+    n_cells = int(at[total])
+    out_cells = cuda.device_array((max(n_cells, 1), 3), dtype=np.int32)
+    out_weight = cuda.device_array(max(n_cells, 1))
+    out_first = cuda.device_array(max(n_cells, 1))
+    _launch(_box_cells_kernel, n_cones * n_rho, d_low_j, d_low_k, d_span_k, d_base, d_j_shifts,
+            n_theta, weight, first, at, out_cells, out_weight, out_first)
+    cells, weights, t_first = (a.copy_to_host()[:n_cells]
+                               for a in (out_cells, out_weight, out_first))
+    bounds = cuda.device_array(n_cones + 1, dtype=np.int64)
+    _launch(_gather_kernel, n_cones + 1, at, cuda.to_device(np.append(base[:, 0], total)), bounds)
+    bounds = bounds.copy_to_host()
+    return [(cells[lo:hi], weights[lo:hi], t_first[lo:hi])
+            for lo, hi in zip(bounds[:-1], bounds[1:])]

@@ -130,6 +130,14 @@ def choice(name, value, options):
     return value
 
 
+DEVICES = ("cpu", "cuda")
+
+
+def device(value):
+    """``device`` must be "cpu" or "cuda" (whether CUDA works is asked later, on use)."""
+    return choice("device", value, DEVICES)
+
+
 def vectors(name, value, rows=None):
     """Coerce to a C-contiguous (m, 3) float64 array; reject NaN and inf."""
     try:

@@ -15,6 +15,7 @@ from . import _batching as batching
 from . import _validate as validate
 from .grid import Grid
 from .kernels import cone as _cone
+from .trace import cuda_backend
 from .traces import Traces
 
 PATTERNS = ("fibonacci", "rings")
@@ -234,8 +235,7 @@ def aggregate_cells(grid, offsets, cells, t_enter, axis, weights, chunks=None, f
     else:
         starts, firsts = chunks[0], chunks[1][:-1]
     firsts = np.ascontiguousarray(firsts)
-    j_axis = grid.cell_of(grid.rho_max * 0.5 * axis)[1]
-    j_shift = (grid.n_theta // 2 - max(int(j_axis), 0)) % grid.n_theta
+    j_shift = theta_shift(grid, axis)
     if fixation is None:
         cells, weights, t_first = _cone.aggregate_boxes(
             offsets, starts, firsts, cells, t_enter, weights, grid.n_rho, grid.n_theta, j_shift)
@@ -244,10 +244,24 @@ def aggregate_cells(grid, offsets, cells, t_enter, axis, weights, chunks=None, f
         cells, weights, t_first = _cone.fixation_boxes(
             offsets, starts, firsts, cells, t_enter, t_exit, weights, log_odds, grid.n_theta,
             grid.n_phi, min_distance, unknown, free_below, j_shift)
+    return by_first_reach(cells, weights, t_first, normalise=fixation is None)
+
+
+def theta_shift(grid, axis):
+    """Return the azimuth shift that puts a cone around ``axis`` mid-seam (``kernels.cone``)."""
+    j_axis = grid.cell_of(grid.rho_max * 0.5 * axis)[1]
+    return (grid.n_theta // 2 - max(int(j_axis), 0)) % grid.n_theta
+
+
+def by_first_reach(cells, weights, t_first, normalise):
+    """Sort a cone's aggregated cells by first reach (ties stay in the order given).
+
+    The weights are normalised to sum to 1 if ``normalise``.
+    """
     order = np.argsort(t_first, kind="stable")
     weights = weights[order]
     total = weights.sum()
-    if fixation is None and total > 0:
+    if normalise and total > 0:
         weights = weights / total
     return cells[order], weights, t_first[order]
 
@@ -283,8 +297,23 @@ def trace_given_rays(grid, origin, directions):
     return batching.run_exact(grid, origins, directions, np.full(directions.shape[0], np.inf), True)
 
 
+def _cones_on_gpu(grid, origins, samples):
+    """Aggregate cones on the GPU: (cells, weights, t_first) of each, by first reach.
+
+    ``samples`` are the cones' (directions, ray weights), ``origins`` their
+    apexes (c, 3).
+    """
+    backend = cuda_backend()
+    counts = [sample[0].shape[0] for sample in samples]
+    unsorted = backend.aggregate_cones(
+        grid, np.repeat(origins, counts, axis=0), np.concatenate([s[0] for s in samples]),
+        np.concatenate([s[1] for s in samples]), counts,
+        [theta_shift(grid, s[0][0]) for s in samples])
+    return [by_first_reach(*cone, normalise=True) for cone in unsorted]
+
+
 def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibonacci",
-               weighting="gaussian", sigma=None):
+               weighting="gaussian", sigma=None, device="cpu"):
     """Trace a gaze cone through ``grid``.
 
     Parameters
@@ -307,6 +336,11 @@ def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibona
         angle from the axis; ``"uniform"`` weights all rays equally.
     sigma : float, optional
         Radians, for ``"gaussian"``; default ``half_angle / 2``.
+    device : {"cpu", "cuda"}
+        ``"cuda"``: trace and aggregate on an NVIDIA GPU (see
+        :func:`~logsph_trace.trace_many`); the result is on the host. The
+        cells and first reaches are the CPU's; the weights are summed in the
+        order the GPU runs the rays, so their last bits may differ.
 
     Returns
     -------
@@ -317,19 +351,26 @@ def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibona
     ValueError
         ``half_angle`` negative, NaN or ``>= pi/2``; wrong shapes; NaN or
         infinite origin or direction; zero direction; bad ``n_rays``,
-        ``pattern``, ``weighting`` or ``sigma``; ``grid`` not a Grid.
+        ``pattern``, ``weighting``, ``sigma`` or ``device``; ``grid`` not a
+        Grid.
+    RuntimeError
+        ``device="cuda"`` without a usable GPU or numba-cuda.
     """
     validate.grid(grid)
+    validate.device(device)
     origin = validate.point("origin", origin)
     directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
-    cells, weights, t_first = aggregate_cone(grid, origin, directions, ray_weights)
+    if device == "cuda":
+        cells, weights, t_first = _cones_on_gpu(grid, origin[None], [(directions, ray_weights)])[0]
+    else:
+        cells, weights, t_first = aggregate_cone(grid, origin, directions, ray_weights)
     traces = None  # traced again if read: storing every segment cost more than aggregating
     return ConeTrace(cells, weights, t_first, directions, ray_weights, origin, grid, traces)
 
 
 def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fibonacci",
-                weighting="gaussian", sigma=None):
+                weighting="gaussian", sigma=None, device="cpu"):
     """Trace many gaze cones at once (a batch of gaze samples); all rays in one parallel call.
 
     Parameters
@@ -337,14 +378,17 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     grid : Grid
     origins, directions : array_like, shape (c, 3)
     half_angles : float or array_like, shape (c,)
-    n_rays, pattern, weighting, sigma :
-        As for :func:`trace_cone`, the same for every cone.
+    n_rays, pattern, weighting, sigma, device :
+        As for :func:`trace_cone`, the same for every cone. On the CPU each
+        result keeps its rays' traces; with ``device="cuda"`` they are traced
+        again (on the CPU) if read.
 
     Returns
     -------
     list of ConeTrace
     """
     validate.grid(grid)
+    validate.device(device)
     origins = validate.origin_size("origins", validate.vectors("origins", origins))
     directions = validate.vectors("directions", directions, rows=origins.shape[0])
     n_cones = origins.shape[0]
@@ -362,6 +406,9 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
         sample_rays(grid, origin, direction, angle, n_rays, pattern, weighting, sigma)
         for origin, direction, angle in zip(origins, directions, half_angles)
     ]
+    if device == "cuda":
+        return [ConeTrace(*cone, *sample, origin, grid, None) for cone, sample, origin
+                in zip(_cones_on_gpu(grid, origins, samples), samples, origins)]
     counts = [len(sample[0]) for sample in samples]
     all_origins = np.repeat(origins, counts, axis=0)
     all_directions = np.concatenate([sample[0] for sample in samples])

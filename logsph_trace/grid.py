@@ -4,6 +4,7 @@ import numpy as np
 
 from . import _validate as validate
 from .kernels import locate as _locate
+from .trace import cuda_backend
 
 SPACINGS = ("log", "paper", "uniform")
 _SPACING_KIND = {"log": _locate.LOG, "paper": _locate.PAPER, "uniform": _locate.UNIFORM}
@@ -270,21 +271,37 @@ class Grid:
         return cached
 
     # ---- conversions ------------------------------------------------------
-    def cell_of(self, points):
+    def cell_of(self, points, device="cpu"):
         """Cell index of each point.
 
         Parameters
         ----------
         points : array_like, shape (M, 3) or (3,)
             Cartesian points (x, y, z).
+        device : {"cpu", "cuda"}
+            ``"cuda"``: look the points up on an NVIDIA GPU (see
+            :func:`~logsph_trace.trace_many`); the cells stay there.
 
         Returns
         -------
         numpy.ndarray, int32, shape (M, 3) (or (3,))
-            ``(i, j, k)`` per point; ``-1`` in all three columns outside the region.
+            ``(i, j, k)`` per point; ``-1`` in all three columns outside the
+            region. With ``device="cuda"``, a numba-cuda device array (CUDA
+            Array Interface; ``.copy_to_host()`` gives the numpy array).
+
+        Raises
+        ------
+        ValueError
+            Wrong shape, NaN or infinite points, unknown ``device``.
+        RuntimeError
+            ``device="cuda"`` without a usable GPU or numba-cuda.
         """
+        validate.device(device)
         array, single = validate.points("points", points)
-        cells = _locate.cells_of_points(array, self.kernel_args())
+        if device == "cuda":
+            cells = cuda_backend().cells_of(self, array)
+        else:
+            cells = _locate.cells_of_points(array, self.kernel_args())
         return cells[0] if single else cells
 
     def contains(self, points):

@@ -18,8 +18,6 @@ METHODS = ("exact", "bisect", "thibaudeau")
 PAPER_DEFAULT_T = 1.5531  # metres: the step the paper tuned for Algorithm 1 (section 3.2)
 
 
-DEVICES = ("cpu", "cuda")
-
 
 def trace_many(grid, origins, directions=None, method="exact", parallel=True,
                default_t=PAPER_DEFAULT_T, max_iter=None, t_max=None, out=None, device="cpu"):
@@ -86,7 +84,7 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     """
     validate.grid(grid)
     validate.choice("method", method, METHODS)
-    validate.choice("device", device, DEVICES)
+    validate.device(device)
     if device == "cuda":
         if method != "exact":
             raise ValueError(f"device='cuda' supports method='exact' only, got {method!r}")
@@ -104,7 +102,7 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     if method == "exact":
         t_max = validate.distances(t_max, origins.shape[0])
         if device == "cuda":
-            return _cuda_backend().trace_many(grid, origins, directions, t_max)
+            return cuda_backend().trace_many(grid, origins, directions, t_max)
         return batching.run_exact(grid, origins, directions, t_max, parallel, out)
     if method == "bisect":
         args = (grid.kernel_args(), default_t, max_iter)
@@ -115,7 +113,7 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     return batching.run_csr(rows.pick(parallel), origins, directions, args)
 
 
-def _cuda_backend():
+def cuda_backend():
     """Import the CUDA backend on first use; raise one clear error without CUDA."""
     try:
         from . import _cuda

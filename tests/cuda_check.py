@@ -53,11 +53,111 @@ def cpu_traces(all_cases):
     return arrays
 
 
+def point_cases(seed=7):
+    """{name: (grid name, points)}: random points and points on every sphere,
+    half-plane and cone of each grid (and an ulp off them), for ``cell_of``."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for name, make in GRIDS.items():
+        grid = make()
+        rho = np.concatenate([grid.rho_edges, rng.uniform(0.0, 1.2 * grid.rho_max, 30)])
+        theta = np.concatenate([grid.theta_edges, rng.uniform(-np.pi, np.pi, 30)])
+        phi = np.concatenate([grid.phi_edges, rng.uniform(-np.pi / 2, np.pi / 2, 30)])
+        n = 300
+        r, t, p = rng.choice(rho, n), rng.choice(theta, n), rng.choice(phi, n)
+        # The paper's frame: theta from +z towards +x, phi up from the x-z plane.
+        points = np.c_[r * np.cos(p) * np.sin(t), r * np.sin(p), r * np.cos(p) * np.cos(t)]
+        points = np.concatenate([points, np.nextafter(points, np.inf),
+                                 np.nextafter(points, -np.inf)])
+        out[f"{name} points"] = (name, points)
+    return out
+
+
+def cpu_cells(all_cases):
+    """The CPU's ``Grid.cell_of`` of every case, as arrays to save."""
+    arrays = {}
+    for key, (grid_name, points) in all_cases.items():
+        arrays[f"{key}|points"] = points
+        arrays[f"{key}|cells"] = GRIDS[grid_name]().cell_of(points)
+        arrays[f"{key}|grid"] = np.array(grid_name)
+    return arrays
+
+
+def cone_cases(seed=6):
+    """{name: (grid name, apexes, axes, half-angles, n_rays)}: batches of gaze cones on
+    every grid kind -- from outside, from the egocentric gap and the centre itself,
+    across the theta seam, along the y axis, a single ray -- and random cones."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for name, make in GRIDS.items():
+        grid = make()
+        named = np.array([
+            # apex, axis, half-angle
+            [-1.3 * grid.rho_max, 0.1, 0.2, 1.0, 0.0, 0.05, 0.15],
+            [0.0, 0.0, 0.0, 0.3, -0.2, 1.0, 0.3],
+            [0.01 * grid.rho_min, 0.0, 0.0, 0.0, 1.0, 0.0, 0.1],
+            [0.5 * grid.rho_max, 0.0, 0.0, -1.0, 1e-9, 0.0, 0.2],
+            [0.2, 1.5, 1.2, -0.1, -0.4, 1.0, 0.0],
+        ])
+        random = np.c_[rng.uniform(-grid.rho_max, grid.rho_max, (4, 3)), rng.normal(size=(4, 3)),
+                       rng.uniform(0.01, 0.4, 4)]
+        for kind, table in (("named", named), ("random", random)):
+            out[f"{name} cones {kind}"] = (name, table[:, :3], table[:, 3:6], table[:, 6], 24)
+    return out
+
+
+def cpu_cones(all_cases):
+    """The CPU's ``trace_cones`` of every case, as arrays to save."""
+    arrays = {}
+    for key, (grid_name, apexes, axes, half_angles, n_rays) in all_cases.items():
+        cones = lt.trace_cones(GRIDS[grid_name](), apexes, axes, half_angles, n_rays=n_rays)
+        for c, cone in enumerate(cones):
+            for field in ("cells", "weights", "t_first"):
+                arrays[f"{key}|{c}|{field}"] = getattr(cone, field)
+        arrays[f"{key}|cones"] = np.c_[apexes, axes, half_angles]
+        arrays[f"{key}|n_rays"] = np.array(n_rays)
+        arrays[f"{key}|grid"] = np.array(grid_name)
+    return arrays
+
+
+def _close(got, want, name, problems):
+    scale = np.maximum(np.abs(want), 1.0)
+    error = np.max(np.abs(got - want) / scale, initial=0.0)
+    if error > 1e-12:
+        problems.append(f"{name} differs by {error:.2e} (relative)")
+
+
+def compare_cones(arrays, key):
+    """``trace_cones(device="cuda")`` of case ``key`` against the saved CPU cones:
+    the same cells in the same order, weights and first reaches within 1e-12."""
+    table = arrays[f"{key}|cones"]
+    cones = lt.trace_cones(GRIDS[str(arrays[f"{key}|grid"])](), table[:, :3], table[:, 3:6],
+                           table[:, 6], n_rays=int(arrays[f"{key}|n_rays"]), device="cuda")
+    problems = []
+    for c, cone in enumerate(cones):
+        if not np.array_equal(cone.cells, arrays[f"{key}|{c}|cells"]):
+            problems.append(f"{key} cone {c}: cells differ")
+            continue
+        for field in ("weights", "t_first"):
+            _close(getattr(cone, field), arrays[f"{key}|{c}|{field}"], f"{key} cone {c}: {field}",
+                   problems)
+    return problems
+
+
 def compare(arrays):
     """Trace every case with ``device="cuda"``; return the mismatches found (a list of str)."""
     problems = []
     keys = sorted({key.split("|")[0] for key in arrays})
     for key in keys:
+        if " cones " in key:
+            problems += compare_cones(arrays, key)
+            continue
+        if key.endswith(" points"):
+            got = GRIDS[str(arrays[f"{key}|grid"])]().cell_of(arrays[f"{key}|points"],
+                                                              device="cuda")
+            if not np.array_equal(got.copy_to_host(), arrays[f"{key}|cells"]):
+                problems.append(f"{key}: cells differ")
+            continue
         rays = arrays[f"{key}|rays"]
         grid = GRIDS[str(arrays[f"{key}|grid"])]()
         got = lt.trace_many(grid, rays[:, :3], rays[:, 3:6], t_max=rays[:, 6],
@@ -68,11 +168,7 @@ def compare(arrays):
         if not np.array_equal(got.cells, arrays[f"{key}|cells"]):
             problems.append(f"{key}: cells differ")
         for field in ("t_enter", "t_exit"):
-            want = arrays[f"{key}|{field}"]
-            scale = np.maximum(np.abs(want), 1.0)
-            error = np.max(np.abs(getattr(got, field) - want) / scale, initial=0.0)
-            if error > 1e-12:
-                problems.append(f"{key}: {field} differs by {error:.2e} (relative)")
+            _close(getattr(got, field), arrays[f"{key}|{field}"], f"{key}: {field}", problems)
     return problems
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numba
 import numpy as np
 import pytest
-from cuda_check import cases, compare, cpu_traces
+from cuda_check import cases, compare, cone_cases, cpu_cells, cpu_cones, cpu_traces, point_cases
 
 import logsph_trace as lt
 
@@ -41,6 +41,18 @@ def test_simulated_gpu_traces_equal_the_cpu(tmp_path):
     assert result.stdout.strip() == "all equal"
 
 
+def test_simulated_gpu_cones_and_cells_of_points_equal_the_cpu(tmp_path):
+    # Batches of cones on every grid kind (from outside, from the gap and the
+    # centre, across the seam, along y, one ray, random): the same cells in
+    # the same order, weights and first reaches within 1e-12 relative. And
+    # Grid.cell_of of points on every edge, an ulp either side and random.
+    path = tmp_path / "cones.npz"
+    np.savez(path, **cpu_cones(cone_cases()), **cpu_cells(point_cases()))
+    result = _simulated([str(path)], tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.strip() == "all equal"
+
+
 @pytest.mark.parametrize("limits", [["7"], ["7", "tiny"]])
 def test_simulated_gpu_in_small_batches_and_parts(tmp_path, limits):
     # 7 rays in flight; then no memory to spare (one ray in flight, a part per
@@ -58,7 +70,8 @@ def test_gpu_traces_equal_the_cpu_on_a_real_device():
     cuda = pytest.importorskip("numba.cuda")
     if numba.config.ENABLE_CUDASIM or not cuda.is_available():
         pytest.skip("no CUDA GPU here")
-    problems = compare(cpu_traces(cases(n_random=5000, n_singular=100)))
+    problems = compare({**cpu_traces(cases(n_random=5000, n_singular=100)),
+                        **cpu_cones(cone_cases()), **cpu_cells(point_cases())})
     assert not problems, problems
 
 
@@ -79,16 +92,33 @@ def test_import_and_the_cpu_path_need_no_numba_cuda():
     assert "needs numba-cuda (pip install 'logsph_trace[cuda]')" in result.stdout
 
 
-def test_cuda_without_a_gpu_is_one_clear_error():
+ON_DEVICE = {
+    "trace_many": lambda device: lt.trace_many(GRID, [[0, 0, -5.0]], [[0, 0, 1.0]],
+                                               device=device),
+    "trace_cone": lambda device: lt.trace_cone(GRID, (0, 0, -5.0), (0, 0, 1.0), 0.1,
+                                               device=device),
+    "trace_cones": lambda device: lt.trace_cones(GRID, [(0, 0, -5.0)], [(0, 0, 1.0)], 0.1,
+                                                 device=device),
+    "cell_of": lambda device: GRID.cell_of([0.0, 0.0, 1.0], device=device),
+}
+
+
+@pytest.mark.parametrize("call", ON_DEVICE)
+def test_cuda_without_a_gpu_is_one_clear_error(call):
     cuda = pytest.importorskip("numba.cuda")
     if cuda.is_available():
         pytest.skip("a CUDA GPU (or the simulator) is available here")
     with pytest.raises(RuntimeError, match="needs an NVIDIA GPU with a working driver"):
-        lt.trace_many(GRID, [[0, 0, -5.0]], [[0, 0, 1.0]], device="cuda")
+        ON_DEVICE[call]("cuda")
+
+
+@pytest.mark.parametrize("call", ON_DEVICE)
+def test_an_unknown_device_is_a_value_error(call):
+    with pytest.raises(ValueError, match=r"device must be one of \('cpu', 'cuda'\), got 'gpu'"):
+        ON_DEVICE[call]("gpu")
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    (dict(device="gpu"), "device must be one of"),
     (dict(device="cuda", method="bisect"), "supports method='exact' only"),
     (dict(device="cuda", out=lt.TraceBuffers()), "out is not supported"),
     (dict(device="cuda", t_max=-1.0), "t_max"),

@@ -16,7 +16,7 @@ from .._jit import jit
 
 
 @jit
-def _shifted(j, j_shift, n_theta):
+def shifted(j, j_shift, n_theta):
     """(j + j_shift) mod n_theta for 0 <= j, j_shift < n_theta, without a division."""
     shifted = np.int64(j) + j_shift
     return shifted - n_theta if shifted >= n_theta else shifted
@@ -42,26 +42,37 @@ def _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
     for chunk in prange(n_chunks):
         for seg in range(firsts[chunk], offsets[starts[chunk + 1]]):
             i = cells[seg, 0]
-            j = _shifted(cells[seg, 1], j_shift, n_theta)
+            j = shifted(cells[seg, 1], j_shift, n_theta)
             k = np.int64(cells[seg, 2])
             low_j[chunk, i] = min(low_j[chunk, i], j)
             high_j[chunk, i] = max(high_j[chunk, i], j)
             low_k[chunk, i] = min(low_k[chunk, i], k)
             high_k[chunk, i] = max(high_k[chunk, i], k)
-    span_k = np.zeros(n_rho, dtype=np.int64)
-    base = np.zeros(n_rho + 1, dtype=np.int64)
     for i in range(n_rho):  # n_rho x n_chunks values: too few to share out
         for chunk in range(1, n_chunks):
             low_j[0, i] = min(low_j[0, i], low_j[chunk, i])
             high_j[0, i] = max(high_j[0, i], high_j[chunk, i])
             low_k[0, i] = min(low_k[0, i], low_k[chunk, i])
             high_k[0, i] = max(high_k[0, i], high_k[chunk, i])
-        if high_j[0, i] >= 0:
-            span_k[i] = high_k[0, i] - low_k[0, i] + 1
-            base[i + 1] = base[i] + (high_j[0, i] - low_j[0, i] + 1) * span_k[i]
+    span_k, base = box_bases(low_j[0], high_j[0], low_k[0], high_k[0])
+    return low_j[0], low_k[0], span_k, base
+
+
+@jit
+def box_bases(low_j, high_j, low_k, high_k):
+    """One cone's boxes from its per-shell extents (n_rho,) (``high_j`` -1: a
+    shell no ray reached): (span_k (n_rho,), base (n_rho + 1,)), as in
+    ``_box_layout``. The GPU path calls it on the host."""
+    n_rho = low_j.shape[0]
+    span_k = np.zeros(n_rho, dtype=np.int64)
+    base = np.zeros(n_rho + 1, dtype=np.int64)
+    for i in range(n_rho):
+        if high_j[i] >= 0:
+            span_k[i] = high_k[i] - low_k[i] + 1
+            base[i + 1] = base[i] + (high_j[i] - low_j[i] + 1) * span_k[i]
         else:
             base[i + 1] = base[i]
-    return low_j[0], low_k[0], span_k, base
+    return span_k, base
 
 
 @jit(inline="always")
@@ -84,11 +95,19 @@ def _boxes(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
 
 
 @jit(inline="always")
-def _box(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift):
+def box_of(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift):
     """The box index of segment ``seg``'s cell (see ``_box_layout``)."""
     i = cells[seg, 0]
-    j = _shifted(cells[seg, 1], j_shift, n_theta)
+    j = shifted(cells[seg, 1], j_shift, n_theta)
     return base[i] + (j - low_j[i]) * span_k[i] + (cells[seg, 2] - low_k[i])
+
+
+@jit(inline="always")
+def unbox(box, i, low_j, low_k, span_k, base, n_theta, j_shift):
+    """The (j, k) of box ``box`` of shell ``i``: ``box_of``'s inverse."""
+    offset = box - base[i]
+    return (shifted(offset // span_k[i] + low_j[i], n_theta - j_shift, n_theta),
+            offset % span_k[i] + low_k[i])
 
 
 @jit(inline="always")
@@ -120,11 +139,9 @@ def _box_cells(weight, first, last_ray, low_j, low_k, span_k, base, n_theta, j_s
         for box in range(base[i], base[i + 1]):
             if last_ray[0, box] == -1:
                 continue
-            offset = box - base[i]
             out_cells[found, 0] = i
-            out_cells[found, 1] = _shifted(offset // span_k[i] + low_j[i], n_theta - j_shift,
-                                           n_theta)
-            out_cells[found, 2] = offset % span_k[i] + low_k[i]
+            out_cells[found, 1], out_cells[found, 2] = unbox(box, i, low_j, low_k, span_k, base,
+                                                            n_theta, j_shift)
             out_weight[found] = weight[0, box]
             out_first[found] = first[0, box]
             found += 1
@@ -156,7 +173,7 @@ def aggregate_boxes(offsets, starts, firsts, cells, t_enter, weights, n_rho, n_t
         for ray in range(starts[chunk], starts[chunk + 1]):
             begin = firsts[chunk] if ray == starts[chunk] else offsets[ray]
             for seg in range(begin, offsets[ray + 1]):
-                box = _box(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift)
+                box = box_of(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift)
                 # Branch-free: a ray re-entering a cell counts once; first reach is a min.
                 weight[chunk, box] += weights[ray] * (last_ray[chunk, box] != ray)
                 last_ray[chunk, box] = ray
@@ -187,7 +204,7 @@ def fixation_boxes(offsets, starts, firsts, cells, t_enter, t_exit, weights, log
             begin = firsts[chunk] if ray == starts[chunk] else offsets[ray]
             clear = 1.0  # probability that nothing so far stopped the gaze
             for seg in range(begin, offsets[ray + 1]):
-                box = _box(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift)
+                box = box_of(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift)
                 first[chunk, box] = min(first[chunk, box], t_enter[seg])
                 if t_exit[seg] <= min_distance:
                     continue  # not counted, and not seen: met again beyond, it counts there
