@@ -328,6 +328,39 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
 
 
 
+@jit(inline="always")
+def radial_ray(points, row, max_range, rho_edges, rho_kind, per_log, theta_edges, theta_kind,
+               phi_edges, phi_kind):
+    """Ray ``row`` of a scan from the grid's origin (see ``mark_radial``): its
+    column (``j * n_phi + k``, or -1 when it misses the region), how many
+    shells from the centre it frees, and its hit cell's map index or -1."""
+    n_rho = rho_edges.shape[0] - 1
+    n_theta = theta_edges.shape[0] - 1
+    n_phi = phi_edges.shape[0] - 1
+    x, y, z, distance, is_hit, is_ray = sensor_ray(points, row, 0.0, 0.0, 0.0, max_range)
+    if not is_ray:
+        return -1, 0, -1
+    j = theta_zone(x, z, theta_edges, theta_kind)
+    k = phi_zone(x, y, z, phi_edges, phi_kind)
+    if j >= n_theta or k < 0 or k >= n_phi:
+        return -1, 0, -1  # outside the angular range: the ray never enters the region
+    shell = locate_in(distance, rho_edges, rho_kind, per_log)  # -1: gap, n_rho: beyond
+    if 0 <= shell < n_rho and distance == rho_edges[shell]:
+        # The ray stops on the sphere below its shell, which the trace
+        # only crosses before t_max: it ends in the cell below.
+        shell -= 1
+        hit = is_hit and shell >= 0
+        free = shell if hit else shell + 1
+    elif 0 <= shell < n_rho and distance - rho_edges[shell] <= 1e-12 * rho_edges[n_rho]:
+        shell -= 1  # the end cell is a sliver (shorter than the trace's snap): no hit
+        hit = False
+        free = shell + 1
+    else:
+        hit = is_hit and 0 <= shell < n_rho
+        free = min(shell, n_rho) if hit else min(shell + 1, n_rho)
+    return j * n_phi + k, free, (shell * n_theta + j) * n_phi + k if hit else -1
+
+
 @jit(parallel=True)
 def mark_radial(points, max_range, grid, free_extent, hits):
     """The sensor at the grid's origin: every ray is radial, so its cells are one
@@ -342,48 +375,20 @@ def mark_radial(points, max_range, grid, free_extent, hits):
     ``rho`` itself) stops before crossing. ``free_extent`` (threads, n_theta * n_phi)
     int64 records, per thread and column, how many shells from the centre are
     free; ``hits[row]`` gets the map index of ray ``row``'s hit cell, or -1.
-    Three lookups per ray instead of a traversal.
+    Three lookups per ray instead of a traversal (``radial_ray``).
     """
     n_rays = points.shape[0]
     rho_edges, rho_kind = grid.rho_edges, grid.rho_kind
-    theta_edges, theta_kind = grid.theta_edges, grid.theta_kind
-    phi_edges, phi_kind = grid.phi_edges, grid.phi_kind
-    n_rho = rho_edges.shape[0] - 1
-    n_theta = theta_edges.shape[0] - 1
-    n_phi = phi_edges.shape[0] - 1
-    snap = 1e-12 * rho_edges[n_rho]
     # Log shells' constant logarithm, taken once (it was a third of a ray's time).
     per_log = log_cells(rho_edges) if rho_kind == LOG else 0.0
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         thread = numba.get_thread_id()
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            hits[row] = -1
-            x, y, z, distance, is_hit, is_ray = sensor_ray(points, row, 0.0, 0.0, 0.0, max_range)
-            if not is_ray:
-                continue
-            j = theta_zone(x, z, theta_edges, theta_kind)
-            k = phi_zone(x, y, z, phi_edges, phi_kind)
-            if j >= n_theta or k < 0 or k >= n_phi:
-                continue  # outside the angular range: the ray never enters the region
-            shell = locate_in(distance, rho_edges, rho_kind, per_log)  # -1: gap, n_rho: beyond
-            if 0 <= shell < n_rho and distance == rho_edges[shell]:
-                # The ray stops on the sphere below its shell, which the trace
-                # only crosses before t_max: it ends in the cell below.
-                shell -= 1
-                hit = is_hit and shell >= 0
-                free = shell if hit else shell + 1
-            elif 0 <= shell < n_rho and distance - rho_edges[shell] <= snap:
-                shell -= 1  # the end cell is a sliver: the ray stops on its edge
-                hit = False
-                free = shell + 1
-            else:
-                hit = is_hit and 0 <= shell < n_rho
-                free = min(shell, n_rho) if hit else min(shell + 1, n_rho)
-            column = j * n_phi + k
-            if free > free_extent[thread, column]:
+            column, free, hits[row] = radial_ray(
+                points, row, max_range, rho_edges, rho_kind, per_log, grid.theta_edges,
+                grid.theta_kind, grid.phi_edges, grid.phi_kind)
+            if column >= 0 and free > free_extent[thread, column]:
                 free_extent[thread, column] = free
-            if hit:
-                hits[row] = (shell * n_theta + j) * n_phi + k
 
 
 @jit(parallel=True)
