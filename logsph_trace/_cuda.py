@@ -32,6 +32,7 @@ from numba import cuda
 
 from .kernels import cone as _cone
 from .kernels import exact, locate
+from .kernels import occupancy as _occupancy
 from .traces import Traces
 
 THREADS = 128  # threads per block
@@ -146,6 +147,11 @@ def exclusive_scan(values):
 
 # ---- the batch ------------------------------------------------------------------------------
 
+def to_device(array):
+    """Copy a numpy array to the GPU."""
+    return cuda.to_device(array)
+
+
 def _device_grid(grid):
     """Return the grid's ``GridArrays`` with its arrays on the device (cached on the grid)."""
     cached = getattr(grid, "_cuda_args", None)
@@ -180,17 +186,27 @@ def trace_many(grid, origins, directions, t_max):
                   cuda.to_device(np.ascontiguousarray(t_max, dtype=np.float64)))
 
 
+def _scratch(size, n_rays):
+    """Allocate the traversal's per-ray scratch for the rays in flight.
+
+    Crossing times and zones, ``(3, size)`` each, and the lookups, for
+    ``RAYS_IN_FLIGHT`` rays at most, fewer where that would not fit in
+    ``MEMORY_SHARE`` of the free memory.
+    """
+    per_ray = 2 * 3 * size * 8 + 8 * 8
+    in_flight = max(1, min(RAYS_IN_FLIGHT, n_rays, int(_free_bytes() * MEMORY_SHARE) // per_ray))
+    return (cuda.device_array((3, size, in_flight), dtype=np.float64),
+            cuda.device_array((3, size, in_flight), dtype=np.int64),
+            cuda.device_array((in_flight, 8), dtype=np.int64))
+
+
 def _trace(grid, d_origins, d_directions, d_t_max):
     """``trace_many`` of rays already on the device."""
     n_rays = d_origins.shape[0]
     args = _device_grid(grid)
     size = int(exact.scratch_size(*grid.shape))
-    # Rays in flight: their scratch (times and zones) in a share of the free memory.
-    per_ray = 2 * 3 * size * 8 + 8 * 8
-    in_flight = max(1, min(RAYS_IN_FLIGHT, n_rays, int(_free_bytes() * MEMORY_SHARE) // per_ray))
-    times = cuda.device_array((3, size, in_flight), dtype=np.float64)
-    zones = cuda.device_array((3, size, in_flight), dtype=np.int64)
-    lookups = cuda.device_array((in_flight, 8), dtype=np.int64)
+    times, zones, lookups = _scratch(size, n_rays)
+    in_flight = lookups.shape[0]
     no_cells = cuda.device_array((1, 3), dtype=np.int32)
     no_times = cuda.device_array(1, dtype=np.float64)
 
@@ -314,9 +330,13 @@ def _extent_kernel(offsets, cells, ray_cone, j_shifts, n_theta, low_j, high_j, l
 
 
 @cuda.jit
-def _weigh_kernel(first_ray, offsets, cells, t_enter, ray_cone, ray_weights, j_shifts, n_theta,
-                  low_j, low_k, span_k, base, seen, weight, first, reached):
+def _weigh_kernel(first_ray, offsets, cells, t_enter, t_exit, ray_cone, ray_weights, j_shifts,
+                  n_theta, n_phi, low_j, low_k, span_k, base, seen, fixation, log_odds,
+                  min_distance, unknown, free_below, weight, first, reached):
     """Ray ``first_ray + k`` (thread k): its weight once into every box it crosses.
+
+    With ``fixation``, its weight times the probability that the box's cell
+    is the first occupied one it meets (as ``kernels.cone.fixation_boxes``).
 
     ``seen`` (words, rays in flight) uint32: thread k's bitmap of its cone's
     boxes, in column k (neighbouring threads, neighbouring words).
@@ -328,16 +348,25 @@ def _weigh_kernel(first_ray, offsets, cells, t_enter, ray_cone, ray_weights, j_s
         start = base[cone, 0]
         for word in range((base[cone, base.shape[1] - 1] - start + 31) // 32):
             seen[word, k] = 0
+        clear = 1.0  # fixation: the probability that nothing so far stopped the gaze
         for seg in range(offsets[ray], offsets[ray + 1]):
             box = _cone.box_of(cells, seg, low_j[cone], low_k[cone], span_k[cone], base[cone],
                                n_theta, j_shifts[cone])
             cuda.atomic.min(first, box, t_enter[seg])
+            if fixation and t_exit[seg] <= min_distance:
+                continue  # not counted, and not seen: met again beyond, it counts there
             word = (box - start) // 32
             bit = np.uint32(1) << np.uint32((box - start) % 32)
             if (seen[word, k] & bit) == 0:  # not a re-entry
                 seen[word, k] |= bit
-                cuda.atomic.add(weight, box, ray_weights[ray])
                 reached[box] = 1
+                if fixation:
+                    p = _cone.stop_probability(log_odds, cells, seg, n_theta, n_phi, unknown,
+                                               free_below)
+                    cuda.atomic.add(weight, box, ray_weights[ray] * p * clear)
+                    clear *= 1.0 - p
+                else:
+                    cuda.atomic.add(weight, box, ray_weights[ray])
 
 
 @cuda.jit
@@ -371,14 +400,17 @@ def _gather_kernel(values, index, out):
         out[t] = values[index[t]]
 
 
-def aggregate_cones(grid, origins, directions, ray_weights, counts, j_shifts):
+def aggregate_cones(grid, origins, directions, ray_weights, counts, j_shifts, fixation=None):
     """Trace cones' rays on the GPU and aggregate each cone's cells there.
 
     ``origins``, ``directions`` (m, 3) and ``ray_weights`` (m,): every ray of
     every cone, cone after cone, ``counts[c]`` rays for cone ``c``;
-    ``j_shifts`` (c,): each cone's azimuth shift. Returns, per cone, its
-    (cells, summed weights, t_first) on the host, unsorted (shell by shell,
-    in box order, as the CPU's ``aggregate_boxes``).
+    ``j_shifts`` (c,): each cone's azimuth shift. ``fixation``: ``(log_odds,
+    min_distance, unknown, free_below)``, the map flat on the device, for
+    first-occupied probabilities instead of weights (see
+    ``cone.aggregate_cells``). Returns, per cone, its (cells, summed values,
+    t_first) on the host, unsorted (shell by shell, in box order, as the
+    CPU's ``aggregate_boxes``).
     """
     require()
     n_cones, n_rho, n_theta = len(counts), grid.n_rho, grid.n_theta
@@ -414,10 +446,16 @@ def aggregate_cones(grid, origins, directions, ray_weights, counts, j_shifts):
     in_flight = max(1, min(RAYS_IN_FLIGHT, n_rays, share // (4 * words)))
     seen = cuda.device_array((words, in_flight), dtype=np.uint32)
     d_weights = cuda.to_device(np.ascontiguousarray(ray_weights, dtype=np.float64))
+    if fixation is None:
+        fixation = (cuda.device_array(1, dtype=np.float32), 0.0, 0.0, 0.0)
+        weigh = (False, *fixation)
+    else:
+        weigh = (True, *fixation)
     for first_ray in range(0, n_rays, in_flight):
         _launch(_weigh_kernel, in_flight, first_ray, traces.offsets, traces.cells,
-                traces.t_enter, d_ray_cone, d_weights, d_j_shifts, n_theta, d_low_j, d_low_k,
-                d_span_k, d_base, seen, weight, first, reached)
+                traces.t_enter, traces.t_exit, d_ray_cone, d_weights, d_j_shifts, n_theta,
+                grid.n_phi, d_low_j, d_low_k, d_span_k, d_base, seen, *weigh, weight, first,
+                reached)
     at = exclusive_scan(reached[:total])
     n_cells = int(at[total])
     out_cells = cuda.device_array((max(n_cells, 1), 3), dtype=np.int32)
@@ -432,3 +470,137 @@ def aggregate_cones(grid, origins, directions, ray_weights, counts, j_shifts):
     bounds = bounds.copy_to_host()
     return [(cells[lo:hi], weights[lo:hi], t_first[lo:hi])
             for lo, hi in zip(bounds[:-1], bounds[1:])]
+
+
+# ---- the occupancy map ----------------------------------------------------------------------
+#
+# The CPU's per-ray code (``kernels.occupancy``: ``sensor_ray`` and
+# ``walk_ray``, or ``radial_ray`` for a sensor at the centre) marks the cells
+# each ray frees, one thread per ray, into flags shared by all threads: every
+# write is a 1, so threads may write the same flag. One thread per cell then
+# applies OctoMap's update, once per cell, as ``apply_scan`` does.
+
+@cuda.jit
+def _mark_scan_kernel(first_row, origin, points, max_range, grid, zone, times, zones, lookups,
+                      free, hits):
+    """Ray ``first_row + k`` (thread k) of a scan from ``origin``: flag its free cells.
+
+    Flags are column-major, as ``apply_scan``'s; ``hits[row]``: its hit there, or -1.
+    """
+    k = cuda.grid(1)
+    row = first_row + k
+    if k < lookups.shape[0] and row < points.shape[0]:
+        ox = origin[0]
+        oy = origin[1]
+        oz = origin[2]
+        dx, dy, dz, distance, is_hit, is_ray = _occupancy.sensor_ray(points, row, ox, oy, oz,
+                                                                     max_range)
+        hits[row] = -1
+        if is_ray:
+            hits[row] = _occupancy.walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, zone[0],
+                                            zone[1], zone[2], grid, times[:, :, k],
+                                            zones[:, :, k], lookups[k], free)
+
+
+@cuda.jit
+def _mark_radial_kernel(points, max_range, grid, per_log, free_extent, hits):
+    """Ray ``row`` (thread) from the grid's origin: widen its column's free extent.
+
+    ``hits[row]``: its hit cell's map index, or -1.
+    """
+    row = cuda.grid(1)
+    if row < points.shape[0]:
+        column, free, hits[row] = _occupancy.radial_ray(
+            points, row, max_range, grid.rho_edges, grid.rho_kind, per_log, grid.theta_edges,
+            grid.theta_kind, grid.phi_edges, grid.phi_kind)
+        if column >= 0 and free > 0:
+            cuda.atomic.max(free_extent, column, free)
+
+
+@cuda.jit
+def _flag_hits_kernel(hits, flags):
+    """Ray ``row`` (thread): flag its hit cell."""
+    row = cuda.grid(1)
+    if row < hits.shape[0] and hits[row] >= 0:
+        flags[hits[row]] = 1
+
+
+@cuda.jit
+def _apply_scan_kernel(log_odds, free, hit, n_rho, log_hit, log_miss, log_min, log_max):
+    """Cell ``index`` (thread, column-major): OctoMap's update, a hit winning."""
+    index = cuda.grid(1)
+    if index < free.shape[0] and (free[index] != 0 or hit[index] != 0):
+        n_columns = free.shape[0] // n_rho
+        cell = (index % n_rho) * n_columns + index // n_rho
+        _occupancy._update(log_odds, cell, hit[index] != 0, free[index] != 0, log_hit, log_miss,
+                           log_min, log_max)
+
+
+@cuda.jit
+def _apply_radial_kernel(log_odds, free_extent, hit, log_hit, log_miss, log_min, log_max):
+    """Cell ``cell`` (thread, map index): free below its column's extent; a hit wins."""
+    cell = cuda.grid(1)
+    if cell < log_odds.shape[0]:
+        n_columns = free_extent.shape[0]
+        free = cell // n_columns < free_extent[cell % n_columns]
+        if free or hit[cell] != 0:
+            _occupancy._update(log_odds, cell, hit[cell] != 0, free, log_hit, log_miss, log_min,
+                               log_max)
+
+
+@cuda.jit
+def _scale_kernel(values, factor):
+    """``values[t] *= factor``."""
+    t = cuda.grid(1)
+    if t < values.shape[0]:
+        values[t] *= factor
+
+
+def integrate(grid, log_odds, points, origin, max_range, update):
+    """Integrate a checked scan into the device map ``log_odds`` (flat float32).
+
+    ``update``: the log-odds of a hit and a miss and the clamps. The same
+    cells as the CPU's ``OccupancyGrid.integrate``, the same update.
+    """
+    require()
+    n_rays, n_cells = points.shape[0], log_odds.shape[0]
+    if n_rays == 0:
+        return
+    args = _device_grid(grid)
+    d_points = cuda.to_device(points)
+    hits = cuda.device_array(n_rays, dtype=np.int64)
+    hit = cuda.to_device(np.zeros(n_cells, dtype=np.uint8))
+    if not np.any(origin):  # the egocentric case: every ray is radial
+        free_extent = cuda.to_device(np.zeros(grid.n_theta * grid.n_phi, dtype=np.int64))
+        per_log = locate.log_cells(grid.rho_edges) if grid.rho_kind == locate.LOG else 0.0
+        _launch(_mark_radial_kernel, n_rays, d_points, max_range, args, per_log, free_extent,
+                hits)
+        _launch(_flag_hits_kernel, n_rays, hits, hit)
+        _launch(_apply_radial_kernel, n_cells, log_odds, free_extent, hit, *update)
+        return
+    zone = np.array([
+        locate.rho_zone(*origin, grid.rho_edges, grid.rho_kind),
+        locate.theta_zone(origin[0], origin[2], grid.theta_edges, grid.theta_kind),
+        locate.phi_zone(*origin, grid.phi_edges, grid.phi_kind)], dtype=np.int64)
+    free = cuda.to_device(np.zeros(n_cells, dtype=np.uint8))
+    times, zones, lookups = _scratch(int(exact.scratch_size(*grid.shape)), n_rays)
+    d_origin, d_zone = cuda.to_device(origin), cuda.to_device(zone)
+    in_flight = lookups.shape[0]
+    for first_row in range(0, n_rays, in_flight):
+        _launch(_mark_scan_kernel, in_flight, first_row, d_origin, d_points, max_range, args,
+                d_zone, times, zones, lookups, free, hits)
+    _launch(_flag_hits_kernel, n_rays, hits, hit)
+    _launch(_apply_scan_kernel, n_cells, log_odds, free, hit, grid.n_rho, *update)
+
+
+def decay(log_odds, factor):
+    """``log_odds *= factor`` on the device (flat float32, factor a float32)."""
+    _launch(_scale_kernel, log_odds.shape[0], log_odds, factor)
+
+
+def values_at(values, index):
+    """``values[index]`` (a flat device array, index (u,) int64) on the host."""
+    out = cuda.device_array(max(index.shape[0], 1), dtype=values.dtype)
+    if index.shape[0]:
+        _launch(_gather_kernel, index.shape[0], values, cuda.to_device(index), out)
+    return out.copy_to_host()[:index.shape[0]]

@@ -297,19 +297,20 @@ def trace_given_rays(grid, origin, directions):
     return batching.run_exact(grid, origins, directions, np.full(directions.shape[0], np.inf), True)
 
 
-def _cones_on_gpu(grid, origins, samples):
+def cones_on_gpu(grid, origins, samples, fixation=None):
     """Aggregate cones on the GPU: (cells, weights, t_first) of each, by first reach.
 
     ``samples`` are the cones' (directions, ray weights), ``origins`` their
-    apexes (c, 3).
+    apexes (c, 3); ``fixation`` as for :func:`aggregate_cone`, with the map
+    flat on the device.
     """
     backend = cuda_backend()
     counts = [sample[0].shape[0] for sample in samples]
     unsorted = backend.aggregate_cones(
         grid, np.repeat(origins, counts, axis=0), np.concatenate([s[0] for s in samples]),
         np.concatenate([s[1] for s in samples]), counts,
-        [theta_shift(grid, s[0][0]) for s in samples])
-    return [by_first_reach(*cone, normalise=True) for cone in unsorted]
+        [theta_shift(grid, s[0][0]) for s in samples], fixation)
+    return [by_first_reach(*cone, normalise=fixation is None) for cone in unsorted]
 
 
 def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibonacci",
@@ -362,7 +363,7 @@ def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibona
     directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
     if device == "cuda":
-        cells, weights, t_first = _cones_on_gpu(grid, origin[None], [(directions, ray_weights)])[0]
+        cells, weights, t_first = cones_on_gpu(grid, origin[None], [(directions, ray_weights)])[0]
     else:
         cells, weights, t_first = aggregate_cone(grid, origin, directions, ray_weights)
     traces = None  # traced again if read: storing every segment cost more than aggregating
@@ -408,7 +409,7 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     ]
     if device == "cuda":
         return [ConeTrace(*cone, *sample, origin, grid, None) for cone, sample, origin
-                in zip(_cones_on_gpu(grid, origins, samples), samples, origins)]
+                in zip(cones_on_gpu(grid, origins, samples), samples, origins)]
     counts = [len(sample[0]) for sample in samples]
     all_origins = np.repeat(origins, counts, axis=0)
     all_directions = np.concatenate([sample[0] for sample in samples])

@@ -21,10 +21,10 @@ import numpy as np
 from . import _validate as validate
 from ._batching import lap
 from ._files import atomic_write, npz_path
-from .cone import aggregate_cone, sample_rays
+from .cone import aggregate_cone, cones_on_gpu, sample_rays
 from .grid import Grid
 from .kernels import occupancy as _kernels
-from .trace import trace_many
+from .trace import cuda_backend, trace_many
 
 
 def _logit(p):
@@ -46,6 +46,11 @@ class OccupancyGrid:
 
     log_odds : array_like, shape ``grid.shape``, optional
         A starting map (e.g. one from elsewhere); default all unknown.
+    device : {"cpu", "cuda"}
+        ``"cuda"``: the map lives on an NVIDIA GPU (numba-cuda, ``pip install
+        "logsph_trace[cuda]"``), and ``integrate``, ``decay``,
+        :func:`gaze_targets` and :func:`fixation_probability` run there, with
+        the CPU's per-ray code. Saving and loading go through the host.
 
     Attributes
     ----------
@@ -54,11 +59,23 @@ class OccupancyGrid:
     log_odds : numpy.ndarray, float32, C-contiguous, shape ``grid.shape``
         0 is unknown (p = 0.5). Its values may be changed in place. Assigning
         an array checks its shape and values and stores a C-contiguous float32
-        copy (an assigned array that is already one is used as it is).
+        copy (an assigned array that is already one is used as it is). On a
+        GPU map, a numba-cuda device array (CUDA Array Interface); assigning
+        a host array copies it to the device.
+    device : str
+        ``"cpu"`` or ``"cuda"``.
+
+    Raises
+    ------
+    RuntimeError
+        ``device="cuda"`` without a usable GPU or numba-cuda.
     """
 
-    def __init__(self, grid, p_hit=0.7, p_miss=0.4, p_min=0.1192, p_max=0.971, log_odds=None):
+    def __init__(self, grid, p_hit=0.7, p_miss=0.4, p_min=0.1192, p_max=0.971, log_odds=None,
+                 device="cpu"):
         validate.grid(grid)
+        self._device = validate.device(device)
+        self._cuda = cuda_backend() if device == "cuda" else None
         # log_odds, and in integrate a byte per cell per thread
         validate.fits("grid", int(np.prod(grid.shape, dtype=np.float64))
                       * (4 + numba.get_num_threads()), f"an occupancy map of {grid.shape} cells")
@@ -68,9 +85,8 @@ class OccupancyGrid:
         self.p_min = validate.probability("p_min", p_min, 0.0, 0.5)
         self.p_max = validate.probability("p_max", p_max, 0.5, 1.0)
         if log_odds is None:
-            self._log_odds = np.zeros(grid.shape, dtype=np.float32)
-        else:
-            self.log_odds = log_odds
+            log_odds = np.zeros(grid.shape, dtype=np.float32)
+        self.log_odds = log_odds
 
     @property
     def grid(self):
@@ -87,21 +103,43 @@ class OccupancyGrid:
         # The kernels index this array as a flat C-ordered block of grid.shape:
         # any other shape, layout or a read-only buffer would be written out of
         # bounds, lost in a copy, or refused by Numba.
-        self._log_odds = validate.log_odds(value, self._grid.shape)
+        value = validate.log_odds(value, self._grid.shape)
+        self._log_odds = value if self._cuda is None else self._cuda.to_device(value)
+
+    @property
+    def device(self):
+        """Where the map lives: ``"cpu"`` or ``"cuda"``."""
+        return self._device
+
+    def _host_log_odds(self):
+        """Return the log-odds as a numpy array (a copy from a GPU map)."""
+        return self._log_odds if self._cuda is None else self._log_odds.copy_to_host()
+
+    def _flat(self):
+        """Return the log-odds as a flat array of ``grid.size`` cells, where they live."""
+        return self._log_odds.reshape(self._log_odds.size)
+
+    def to_host(self):
+        """Return the map on the CPU: ``self`` for a CPU map, else a copy."""
+        if self._cuda is None:
+            return self
+        return OccupancyGrid(self.grid, self.p_hit, self.p_miss, self.p_min, self.p_max,
+                             log_odds=self._host_log_odds())
 
     def __repr__(self):
-        occupied = int(np.count_nonzero(self.log_odds > 0))
-        return f"OccupancyGrid({self.grid}, {occupied} cells above p = 0.5)"
+        occupied = int(np.count_nonzero(self._host_log_odds() > 0))
+        where = "" if self._cuda is None else ", on the GPU"
+        return f"OccupancyGrid({self.grid}, {occupied} cells above p = 0.5{where})"
 
     @property
     def probability(self):
-        """Occupancy probability per cell, float64, shape ``grid.shape``."""
-        return 1.0 / (1.0 + np.exp(-self.log_odds.astype(np.float64)))
+        """Occupancy probability per cell, float64, shape ``grid.shape`` (on the host)."""
+        return 1.0 / (1.0 + np.exp(-self._host_log_odds().astype(np.float64)))
 
     def occupied(self, threshold=0.6):
-        """Cells whose probability exceeds ``threshold``, shape (u, 3)."""
+        """Cells whose probability exceeds ``threshold``, shape (u, 3) (on the host)."""
         threshold = validate.probability("threshold", threshold)
-        return np.argwhere(self.log_odds > _logit(threshold)).astype(np.int32)
+        return np.argwhere(self._host_log_odds() > _logit(threshold)).astype(np.int32)
 
     def integrate(self, points, sensor_origin, max_range=None):
         """Integrate one scan: free space along each sensor ray, its end cell occupied.
@@ -133,6 +171,9 @@ class OccupancyGrid:
         n_cells = int(np.prod(grid.shape))
         threads = numba.get_num_threads()
         update = (_logit(self.p_hit), _logit(self.p_miss), _logit(self.p_min), _logit(self.p_max))
+        if self._cuda is not None:
+            self._cuda.integrate(grid, self._flat(), points, origin, max_range, update)
+            return self
         # Each ray's direction, length and hit are set up in the kernels, in parallel.
         hits = np.empty(points.shape[0], dtype=np.int64)
         if not np.any(origin):
@@ -155,6 +196,16 @@ class OccupancyGrid:
         lap("apply", start)
         return self
 
+    def _values_at(self, cells):
+        """Return the log-odds of ``cells`` ((u, 3) indices in the grid) on the host.
+
+        From a GPU map only these cells are copied.
+        """
+        if self._cuda is None:
+            return self._log_odds[tuple(np.asarray(cells).T)]
+        flat = np.ravel_multi_index(tuple(np.asarray(cells).T), self.grid.shape)
+        return self._cuda.values_at(self._flat(), flat.astype(np.int64))
+
     def decay(self, factor):
         """Fade the map towards unknown: ``log_odds *= factor`` (a short-term memory).
 
@@ -166,7 +217,10 @@ class OccupancyGrid:
             raise ValueError(f"factor must be in [0, 1], got {factor!r}") from None
         if not 0.0 <= factor <= 1.0:
             raise ValueError(f"factor must be in [0, 1], got {factor!r}")
-        np.multiply(self._log_odds, np.float32(factor), out=self._log_odds)
+        if self._cuda is None:
+            np.multiply(self._log_odds, np.float32(factor), out=self._log_odds)
+        else:
+            self._cuda.decay(self._flat(), np.float32(factor))
         return self
 
     def save(self, path):
@@ -174,13 +228,14 @@ class OccupancyGrid:
 
         As :func:`numpy.savez`, ``.npz`` is added to a name without it. The
         write is atomic: if it fails or is interrupted, an existing file of
-        that name is left as it was and no partial file remains.
+        that name is left as it was and no partial file remains. A GPU map
+        is copied to the host first.
         """
         grid = self.grid
         path = npz_path(path)
         with atomic_write(path) as stream:
             np.savez_compressed(
-                stream, log_odds=self.log_odds, rho_edges=grid.rho_edges,
+                stream, log_odds=self._host_log_odds(), rho_edges=grid.rho_edges,
                 theta_edges=grid.theta_edges, phi_edges=grid.phi_edges,
                 spacing=np.array(grid.spacing),
                 probabilities=np.array([self.p_hit, self.p_miss, self.p_min, self.p_max]),
@@ -188,8 +243,8 @@ class OccupancyGrid:
         return path
 
     @classmethod
-    def load(cls, path):
-        """Read a map written by :meth:`save`.
+    def load(cls, path, device="cpu"):
+        """Read a map written by :meth:`save`, onto ``device`` ("cpu" or "cuda").
 
         The grid is rebuilt through :meth:`Grid.from_edges`, so a file is
         checked like new input.
@@ -203,6 +258,7 @@ class OccupancyGrid:
             arrays); the message names the file.
         """
         path = Path(path)
+        validate.device(device)
         try:
             with np.load(path, allow_pickle=False) as data:
                 missing = _SAVED_ARRAYS.difference(data.files)
@@ -213,11 +269,15 @@ class OccupancyGrid:
                 probabilities = np.asarray(data["probabilities"], dtype=np.float64)
                 if probabilities.shape != (4,):
                     raise ValueError(f"probabilities must hold 4 numbers, got {probabilities}")
-                return cls(grid, *probabilities.tolist(), log_odds=data["log_odds"])
+                log_odds = data["log_odds"]
         except (FileNotFoundError, PermissionError, IsADirectoryError):
             raise
         except (ValueError, TypeError, KeyError, IndexError, EOFError, OSError,
                 zipfile.BadZipFile) as error:
+            raise ValueError(f"{path} is not a valid OccupancyGrid file: {error}") from None
+        try:
+            return cls(grid, *probabilities.tolist(), log_odds=log_odds, device=device)
+        except ValueError as error:
             raise ValueError(f"{path} is not a valid OccupancyGrid file: {error}") from None
 
 
@@ -263,7 +323,7 @@ def gaze_targets(occupancy, origin, direction, threshold=0.6):
     _, first = np.unique(ray.cells, axis=0, return_index=True)
     first = np.sort(first)  # each cell at its first entry, in order of distance
     cells = ray.cells[first]
-    probability = 1.0 / (1.0 + np.exp(-occupancy.log_odds[tuple(cells.T)].astype(np.float64)))
+    probability = 1.0 / (1.0 + np.exp(-occupancy._values_at(cells).astype(np.float64)))
     above = probability > threshold
     return GazeTargets(cells[above], probability[above], ray.t_enter[first][above])
 
@@ -321,9 +381,12 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
                                           weighting, sigma)
     # Traced as trace_cone traces; each cell's first-occupied probability is
     # summed in the same chunked pass that sums a cone's weights.
-    cells, values, t_first = aggregate_cone(
-        grid, origin, directions, ray_weights,
-        fixation=(occupancy.log_odds.reshape(-1), min_distance, unknown, free_below))
+    fixation = (occupancy._flat(), min_distance, unknown, free_below)
+    if occupancy.device == "cuda":
+        cells, values, t_first = cones_on_gpu(grid, origin[None], [(directions, ray_weights)],
+                                              fixation)[0]
+    else:
+        cells, values, t_first = aggregate_cone(grid, origin, directions, ray_weights, fixation)
     if dense:
         out = np.zeros(grid.shape)
         out[tuple(cells.T)] = values

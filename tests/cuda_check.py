@@ -8,6 +8,8 @@ check runs in the test process itself.
 """
 
 import sys
+import tempfile
+from pathlib import Path
 
 import numpy as np
 from singular import CLASSES, singular_rays
@@ -83,6 +85,86 @@ def cpu_cells(all_cases):
     return arrays
 
 
+GAZES = (((0.4, 1.5, 1.2), (-0.1, -0.4, 1.0), 0.3), ((-2.0, 0.3, -1.0), (1.0, -0.1, 0.8), 0.0))
+
+
+def map_cases(seed=8, n_points=45):
+    """{name: (grid name, points (s, n, 3), sensors (s, 3), max_range)}: scans
+    integrated in a row into one map, from the centre, 10 cm off it, from the
+    egocentric gap and from inside the region; a third of each scan's points
+    on the grid's spheres (the end cells the trace decides by its own
+    crossing times)."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for name, make in GRIDS.items():
+        grid = make()
+        sensors = np.array([[0.0, 0.0, 0.0], [0.06, 0.08, 0.0],
+                            [0.3 * grid.rho_min, 0.0, -0.2 * grid.rho_min],
+                            [0.2 * grid.rho_max, 0.1 * grid.rho_max, 0.3 * grid.rho_max]])
+        scans = []
+        for sensor in sensors:
+            points = rng.uniform(-grid.rho_max, grid.rho_max, (n_points, 3))
+            on = points[: n_points // 3]
+            radius = rng.choice(grid.rho_edges, on.shape[0])
+            on *= (radius / np.linalg.norm(on, axis=1))[:, None]
+            scans.append(points)
+        out[f"{name} map"] = (name, np.array(scans), sensors, 0.8 * grid.rho_max)
+    return out
+
+
+def _map_steps(occupancy, scans, sensors, max_range):
+    """Integrate the scans, decay, then look: {name: array} of what each step gives."""
+    steps = {}
+    for s, (points, sensor) in enumerate(zip(scans, sensors)):
+        occupancy.integrate(points, sensor, max_range=max_range if s % 2 else None)
+        steps[f"after scan {s}"] = occupancy.to_host().log_odds.copy()
+    occupancy.decay(0.8)
+    steps["decayed"] = occupancy.to_host().log_odds.copy()
+    for g, (origin, direction, half_angle) in enumerate(GAZES):
+        fixation = lt.fixation_probability(occupancy, origin, direction, half_angle=half_angle,
+                                           n_rays=20, unknown=0.1)
+        targets = lt.gaze_targets(occupancy, origin, direction, threshold=0.45)
+        for field in ("cells", "values", "t_enter"):
+            steps[f"fixation {g} {field}"] = getattr(fixation, field)
+            steps[f"targets {g} {field}"] = getattr(targets, field)
+    with tempfile.TemporaryDirectory() as folder:
+        loaded = lt.OccupancyGrid.load(occupancy.save(Path(folder) / "map"),
+                                       device=occupancy.device)
+    assert loaded.device == occupancy.device
+    steps["saved and loaded"] = loaded.to_host().log_odds
+    return steps
+
+
+def cpu_maps(all_cases):
+    """The CPU map's steps of every case, as arrays to save."""
+    arrays = {}
+    for key, (grid_name, scans, sensors, max_range) in all_cases.items():
+        steps = _map_steps(lt.OccupancyGrid(GRIDS[grid_name]()), scans, sensors, max_range)
+        arrays.update({f"{key}|{step}": value for step, value in steps.items()})
+        arrays[f"{key}|scans"] = scans
+        arrays[f"{key}|sensors"] = sensors
+        arrays[f"{key}|max_range"] = np.array(max_range)
+        arrays[f"{key}|grid"] = np.array(grid_name)
+    return arrays
+
+
+def compare_map(arrays, key):
+    """The same steps on a GPU map: maps and cells identical, values within 1e-12."""
+    occupancy = lt.OccupancyGrid(GRIDS[str(arrays[f"{key}|grid"])](), device="cuda")
+    steps = _map_steps(occupancy, arrays[f"{key}|scans"], arrays[f"{key}|sensors"],
+                       float(arrays[f"{key}|max_range"]))
+    problems = []
+    for step, got in steps.items():
+        want = arrays[f"{key}|{step}"]
+        if got.shape != want.shape:
+            problems.append(f"{key} {step}: shape {got.shape}, not {want.shape}")
+        elif step.endswith(("values", "t_enter")):
+            _close(got, want, f"{key} {step}", problems)
+        elif not np.array_equal(got, want):
+            problems.append(f"{key} {step}: differs")
+    return problems
+
+
 def cone_cases(seed=6):
     """{name: (grid name, apexes, axes, half-angles, n_rays)}: batches of gaze cones on
     every grid kind -- from outside, from the egocentric gap and the centre itself,
@@ -151,6 +233,9 @@ def compare(arrays):
     for key in keys:
         if " cones " in key:
             problems += compare_cones(arrays, key)
+            continue
+        if key.endswith(" map"):
+            problems += compare_map(arrays, key)
             continue
         if key.endswith(" points"):
             got = GRIDS[str(arrays[f"{key}|grid"])]().cell_of(arrays[f"{key}|points"],

@@ -14,7 +14,17 @@ from pathlib import Path
 import numba
 import numpy as np
 import pytest
-from cuda_check import cases, compare, cone_cases, cpu_cells, cpu_cones, cpu_traces, point_cases
+from cuda_check import (
+    cases,
+    compare,
+    cone_cases,
+    cpu_cells,
+    cpu_cones,
+    cpu_maps,
+    cpu_traces,
+    map_cases,
+    point_cases,
+)
 
 import logsph_trace as lt
 
@@ -53,6 +63,18 @@ def test_simulated_gpu_cones_and_cells_of_points_equal_the_cpu(tmp_path):
     assert result.stdout.strip() == "all equal"
 
 
+def test_simulated_gpu_map_equals_the_cpu(tmp_path):
+    # Scans in a row into one map on every grid kind -- from the centre, 10 cm
+    # off, from the gap and from inside the region, every other one cut at a
+    # max_range, a third of the points on spheres -- then decay, fixation and
+    # gaze targets: the maps identical after every step.
+    path = tmp_path / "maps.npz"
+    np.savez(path, **cpu_maps(map_cases()))
+    result = _simulated([str(path)], tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.strip() == "all equal"
+
+
 @pytest.mark.parametrize("limits", [["7"], ["7", "tiny"]])
 def test_simulated_gpu_in_small_batches_and_parts(tmp_path, limits):
     # 7 rays in flight; then no memory to spare (one ray in flight, a part per
@@ -71,7 +93,8 @@ def test_gpu_traces_equal_the_cpu_on_a_real_device():
     if numba.config.ENABLE_CUDASIM or not cuda.is_available():
         pytest.skip("no CUDA GPU here")
     problems = compare({**cpu_traces(cases(n_random=5000, n_singular=100)),
-                        **cpu_cones(cone_cases()), **cpu_cells(point_cases())})
+                        **cpu_cones(cone_cases()), **cpu_cells(point_cases()),
+                        **cpu_maps(map_cases(n_points=5000))})
     assert not problems, problems
 
 
@@ -100,6 +123,7 @@ ON_DEVICE = {
     "trace_cones": lambda device: lt.trace_cones(GRID, [(0, 0, -5.0)], [(0, 0, 1.0)], 0.1,
                                                  device=device),
     "cell_of": lambda device: GRID.cell_of([0.0, 0.0, 1.0], device=device),
+    "OccupancyGrid": lambda device: lt.OccupancyGrid(GRID, device=device),
 }
 
 
@@ -126,6 +150,15 @@ def test_an_unknown_device_is_a_value_error(call):
 def test_bad_cuda_options_are_value_errors_before_any_gpu_is_needed(kwargs, match):
     with pytest.raises(ValueError, match=match):
         lt.trace_many(GRID, [[0, 0, -5.0]], [[0, 0, 1.0]], **kwargs)
+
+
+def test_a_host_map_answers_device_questions(tmp_path):
+    occupancy = lt.OccupancyGrid(GRID)
+    assert occupancy.device == "cpu" and occupancy.to_host() is occupancy
+    path = occupancy.save(tmp_path / "map")
+    with pytest.raises(ValueError, match="device must be one of"):
+        lt.OccupancyGrid.load(path, device="gpu")
+    assert lt.OccupancyGrid.load(path, device="cpu").device == "cpu"
 
 
 def test_host_traces_answer_device_questions():

@@ -181,6 +181,16 @@ def aggregate_boxes(offsets, starts, firsts, cells, t_enter, weights, n_rho, n_t
     return _box_cells(weight, first, last_ray, low_j, low_k, span_k, base, n_theta, j_shift)
 
 
+@jit(inline="always")
+def stop_probability(log_odds, cells, seg, n_theta, n_phi, unknown, free_below):
+    """The probability that segment ``seg``'s cell stops a gaze (see ``fixation_boxes``)."""
+    value = log_odds[(cells[seg, 0] * n_theta + cells[seg, 1]) * n_phi + cells[seg, 2]]
+    if value == 0:
+        return unknown
+    p = 1.0 / (1.0 + math.exp(-np.float64(value)))
+    return 0.0 if p < free_below else p
+
+
 @jit(parallel=True)
 def fixation_boxes(offsets, starts, firsts, cells, t_enter, t_exit, weights, log_odds, n_theta,
                    n_phi, min_distance, unknown, free_below, j_shift):
@@ -211,14 +221,7 @@ def fixation_boxes(offsets, starts, firsts, cells, t_enter, t_exit, weights, log
                 if last_ray[chunk, box] == ray:
                     continue  # re-entered: counted at its first entry
                 last_ray[chunk, box] = ray
-                flat = (cells[seg, 0] * n_theta + cells[seg, 1]) * n_phi + cells[seg, 2]
-                value = log_odds[flat]
-                if value == 0:
-                    p = unknown
-                else:
-                    p = 1.0 / (1.0 + math.exp(-np.float64(value)))
-                    if p < free_below:
-                        p = 0.0
+                p = stop_probability(log_odds, cells, seg, n_theta, n_phi, unknown, free_below)
                 weight[chunk, box] += weights[ray] * p * clear
                 clear *= 1.0 - p
     return _box_cells(weight, first, last_ray, low_j, low_k, span_k, base, n_theta, j_shift)

@@ -56,7 +56,7 @@ def _left_within_snap(t_now, t_next, snap, t_closest, h2, i, rho_sq):
 
 
 @jit
-def _walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zones, lookups,
+def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zones, lookups,
               free):
     """Flag the cells one sensor ray (unit direction) crosses up to ``t_max`` in
     ``free`` (indexed column-major, see ``apply_scan``); return the index of its
@@ -255,7 +255,7 @@ def sensor_ray(points, row, ox, oy, oz, max_range):
 
 @jit(parallel=True)
 def mark_scan(origin, points, max_range, grid, free, hits):
-    """Walk the ray from ``origin`` to every point of a scan (see ``_walk_ray``).
+    """Walk the ray from ``origin`` to every point of a scan (see ``walk_ray``).
 
     ``max_range``: rays are cut there and end in no hit (``inf``: none).
     ``grid`` is the grid's ``GridArrays``. ``free`` (threads, n_cells) uint8
@@ -279,17 +279,22 @@ def mark_scan(origin, points, max_range, grid, free, hits):
             dx, dy, dz, distance, is_hit, is_ray = sensor_ray(points, row, ox, oy, oz, max_range)
             hits[row] = -1
             if is_ray:
-                hits[row] = _walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, ir, jt, kp, grid,
+                hits[row] = walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, ir, jt, kp, grid,
                                       times, zones, lookups, row_free)
 
 
 @jit
 def _update(log_odds, cell, hit, free, log_hit, log_miss, log_min, log_max):
-    """OctoMap's update of one cell: a hit wins over a miss; clamped."""
+    """OctoMap's update of one cell: a hit wins over a miss; clamped.
+
+    Summed in float64 and rounded once to the map's float32, whatever the
+    caller's promotion rules (numpy 2 would add a Python float to a float32
+    scalar in float32).
+    """
     if hit:
-        log_odds[cell] = min(log_odds[cell] + log_hit, log_max)
+        log_odds[cell] = min(np.float64(log_odds[cell]) + log_hit, log_max)
     elif free:
-        log_odds[cell] = max(log_odds[cell] + log_miss, log_min)
+        log_odds[cell] = max(np.float64(log_odds[cell]) + log_miss, log_min)
 
 
 @jit(parallel=True)
