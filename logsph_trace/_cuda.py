@@ -30,6 +30,7 @@ import math
 import numpy as np
 from numba import cuda
 
+from ._jit import CACHE
 from .kernels import cone as _cone
 from .kernels import exact, locate
 from .kernels import occupancy as _occupancy
@@ -40,6 +41,9 @@ SCAN_CHUNK = 32  # values one thread of the prefix sum adds up in order
 RAYS_IN_FLIGHT = 65_536  # rays whose scratch is on the device at once
 MEMORY_SHARE = 0.5  # of the free device memory, what the scratch or one part's regions may take
 SEGMENT_BYTES = 4 * 3 + 8 + 8  # a cell, t_enter and t_exit
+
+# Every kernel is cached on disk, as the CPU's are (``LOGSPH_TRACE_CACHE=0`` turns it off).
+kernel = cuda.jit(cache=CACHE)
 
 
 def require():
@@ -57,7 +61,7 @@ def require():
 
 # ---- kernels --------------------------------------------------------------------------------
 
-@cuda.jit
+@kernel
 def _bound_kernel(origins, directions, t_max, grid, first, times, zones, lookups, bounds, cells,
                   t_enter, t_exit):
     """Ray ``first + k`` (thread k): its bound on segments into ``bounds[first + k]``."""
@@ -69,7 +73,7 @@ def _bound_kernel(origins, directions, t_max, grid, first, times, zones, lookups
                                       t_exit, 0, exact.BOUND)
 
 
-@cuda.jit
+@kernel
 def _trace_kernel(origins, directions, t_max, grid, first, times, zones, lookups, regions, base,
                   cells, t_enter, t_exit, counts):
     """Ray ``first + k`` (thread k) into its region, ``regions[row] - base`` on; its count."""
@@ -81,7 +85,7 @@ def _trace_kernel(origins, directions, t_max, grid, first, times, zones, lookups
                                       regions[row] - base, exact.FULL)
 
 
-@cuda.jit
+@kernel
 def _compact_kernel(regions, base, offsets, loose_cells, loose_enter, loose_exit, cells, t_enter,
                     t_exit):
     """Ray ``row``'s segments from its region to ``offsets[row] - offsets[0]`` on."""
@@ -97,7 +101,7 @@ def _compact_kernel(regions, base, offsets, loose_cells, loose_enter, loose_exit
             t_exit[target + s] = loose_exit[source + s]
 
 
-@cuda.jit
+@kernel
 def _chunk_sums(values, sums):
     """Thread t: the total of chunk t of ``values`` (``SCAN_CHUNK`` values)."""
     t = cuda.grid(1)
@@ -109,7 +113,7 @@ def _chunk_sums(values, sums):
         sums[t] = total
 
 
-@cuda.jit
+@kernel
 def _chunk_scan(values, chunk_offsets, out):
     """Thread t: the running totals of chunk t, from the chunks before it, into ``out``."""
     t = cuda.grid(1)
@@ -280,7 +284,7 @@ def _join(parts):
 
 # ---- points ---------------------------------------------------------------------------------
 
-@cuda.jit
+@kernel
 def _cells_of_kernel(points, grid, out):
     """Point ``row`` (thread): its cell, as the CPU's ``locate.cells_of_points``."""
     row = cuda.grid(1)
@@ -313,7 +317,7 @@ def cells_of(grid, points):
 BIG = np.iinfo(np.int64).max
 
 
-@cuda.jit
+@kernel
 def _extent_kernel(offsets, cells, ray_cone, j_shifts, n_theta, low_j, high_j, low_k, high_k):
     """Ray ``ray`` (thread): widen its cone's per-shell boxes to hold its cells."""
     ray = cuda.grid(1)
@@ -329,7 +333,7 @@ def _extent_kernel(offsets, cells, ray_cone, j_shifts, n_theta, low_j, high_j, l
             cuda.atomic.max(high_k, (cone, i), k)
 
 
-@cuda.jit
+@kernel
 def _weigh_kernel(first_ray, offsets, cells, t_enter, t_exit, ray_cone, ray_weights, j_shifts,
                   n_theta, n_phi, low_j, low_k, span_k, base, seen, fixation, log_odds,
                   min_distance, unknown, free_below, weight, first, reached):
@@ -369,7 +373,7 @@ def _weigh_kernel(first_ray, offsets, cells, t_enter, t_exit, ray_cone, ray_weig
                     cuda.atomic.add(weight, box, ray_weights[ray])
 
 
-@cuda.jit
+@kernel
 def _box_cells_kernel(low_j, low_k, span_k, base, j_shifts, n_theta, weight, first, at,
                       out_cells, out_weight, out_first):
     """Shell ``i`` of cone ``c`` (thread ``c * n_rho + i``): its reached boxes as cells.
@@ -392,7 +396,7 @@ def _box_cells_kernel(low_j, low_k, span_k, base, j_shifts, n_theta, weight, fir
                 out_first[found] = first[box]
 
 
-@cuda.jit
+@kernel
 def _gather_kernel(values, index, out):
     """``out[t] = values[index[t]]``."""
     t = cuda.grid(1)
@@ -480,7 +484,7 @@ def aggregate_cones(grid, origins, directions, ray_weights, counts, j_shifts, fi
 # write is a 1, so threads may write the same flag. One thread per cell then
 # applies OctoMap's update, once per cell, as ``apply_scan`` does.
 
-@cuda.jit
+@kernel
 def _mark_scan_kernel(first_row, origin, points, max_range, grid, zone, times, zones, lookups,
                       free, hits):
     """Ray ``first_row + k`` (thread k) of a scan from ``origin``: flag its free cells.
@@ -502,7 +506,7 @@ def _mark_scan_kernel(first_row, origin, points, max_range, grid, zone, times, z
                                             zones[:, :, k], lookups[k], free)
 
 
-@cuda.jit
+@kernel
 def _mark_radial_kernel(points, max_range, grid, per_log, free_extent, hits):
     """Ray ``row`` (thread) from the grid's origin: widen its column's free extent.
 
@@ -517,7 +521,7 @@ def _mark_radial_kernel(points, max_range, grid, per_log, free_extent, hits):
             cuda.atomic.max(free_extent, column, free)
 
 
-@cuda.jit
+@kernel
 def _flag_hits_kernel(hits, flags):
     """Ray ``row`` (thread): flag its hit cell."""
     row = cuda.grid(1)
@@ -525,7 +529,7 @@ def _flag_hits_kernel(hits, flags):
         flags[hits[row]] = 1
 
 
-@cuda.jit
+@kernel
 def _apply_scan_kernel(log_odds, free, hit, n_rho, log_hit, log_miss, log_min, log_max):
     """Cell ``index`` (thread, column-major): OctoMap's update, a hit winning."""
     index = cuda.grid(1)
@@ -536,7 +540,7 @@ def _apply_scan_kernel(log_odds, free, hit, n_rho, log_hit, log_miss, log_min, l
                            log_min, log_max)
 
 
-@cuda.jit
+@kernel
 def _apply_radial_kernel(log_odds, free_extent, hit, log_hit, log_miss, log_min, log_max):
     """Cell ``cell`` (thread, map index): free below its column's extent; a hit wins."""
     cell = cuda.grid(1)
@@ -548,7 +552,7 @@ def _apply_radial_kernel(log_odds, free_extent, hit, log_hit, log_miss, log_min,
                                log_max)
 
 
-@cuda.jit
+@kernel
 def _scale_kernel(values, factor):
     """``values[t] *= factor``."""
     t = cuda.grid(1)

@@ -5,6 +5,8 @@ the same segment output, the same batching: one appending pass on one
 thread, waves of chunks on many) so timings compare like for like.
 """
 
+import math
+
 import numpy as np
 from numba import prange
 
@@ -84,6 +86,39 @@ def trace_box_ray(origins, directions, row, low, size, shape, cells, t_enter, t_
             if iz < 0 or iz >= shape[2]:
                 break
     return count
+
+
+@jit
+def box_bound(origins, directions, row, low, size, shape):
+    """An upper bound on ``trace_box_ray``'s voxels for ray ``row``, in O(1).
+
+    The index steps between the voxels of its entry and exit, one more per
+    axis for rounding (the walk accumulates its boundary times), at most the
+    walk's own limit ``shape[0] + shape[1] + shape[2]``. The GPU baseline of
+    ``bench.gpu`` sizes each ray's region with it, as the exact kernel's
+    ``BOUND`` mode does.
+    """
+    ox, oy, oz = origins[row, 0], origins[row, 1], origins[row, 2]
+    dx, dy, dz = directions[row, 0], directions[row, 1], directions[row, 2]
+    near_x, far_x = _slab(ox, dx, low[0], low[0] + shape[0] * size[0])
+    near_y, far_y = _slab(oy, dy, low[1], low[1] + shape[1] * size[1])
+    near_z, far_z = _slab(oz, dz, low[2], low[2] + shape[2] * size[2])
+    t_in = max(0.0, near_x, near_y, near_z)
+    t_out = min(far_x, far_y, far_z)
+    if not t_in < t_out:
+        return 0
+    steps = (1 + _axis_steps(ox, dx, t_in, t_out, low[0], size[0], shape[0])
+             + _axis_steps(oy, dy, t_in, t_out, low[1], size[1], shape[1])
+             + _axis_steps(oz, dz, t_in, t_out, low[2], size[2], shape[2]))
+    return min(steps, shape[0] + shape[1] + shape[2])
+
+
+@jit(inline="always")
+def _axis_steps(origin, direction, t_in, t_out, low, width, n):
+    """Index steps along one axis between t_in and t_out, plus one for rounding."""
+    first = min(max(int(math.floor((origin + t_in * direction - low) / width)), 0), n - 1)
+    last = min(max(int(math.floor((origin + t_out * direction - low) / width)), 0), n - 1)
+    return abs(last - first) + 1
 
 
 @jit
