@@ -30,6 +30,7 @@ import math
 import numpy as np
 from numba import cuda
 
+from . import _validate as validate
 from ._jit import CACHE
 from .kernels import cone as _cone
 from .kernels import exact, locate
@@ -41,6 +42,7 @@ SCAN_CHUNK = 32  # values one thread of the prefix sum adds up in order
 RAYS_IN_FLIGHT = 65_536  # rays whose scratch is on the device at once
 MEMORY_SHARE = 0.5  # of the free device memory, what the scratch or one part's regions may take
 SEGMENT_BYTES = 4 * 3 + 8 + 8  # a cell, t_enter and t_exit
+BIG = np.iinfo(np.int64).max  # "none yet" for an atomic min
 
 # Every kernel is cached on disk, as the CPU's are (``LOGSPH_TRACE_CACHE=0`` turns it off).
 kernel = cuda.jit(cache=CACHE)
@@ -282,6 +284,163 @@ def _join(parts):
     return cells, t_enter, t_exit
 
 
+# ---- GPU inputs -----------------------------------------------------------------------------
+#
+# Arrays already on the GPU are checked there, as ``_validate`` checks numpy
+# inputs on the host, with the same messages; only the first bad row of each
+# check comes back.
+
+BAD_CHECKS = 5  # origins not finite, origins too long, directions not finite or zero, t_max
+
+
+@kernel
+def _cast_kernel(source, target):
+    """Value ``row`` (thread) of ``source`` into the float64 ``target`` (1-D)."""
+    row = cuda.grid(1)
+    if row < target.shape[0]:
+        target[row] = source[row]
+
+
+@kernel
+def _cast_rows_kernel(source, target):
+    """Row ``row`` (thread) of ``source`` into the float64 ``target`` (2-D)."""
+    row = cuda.grid(1)
+    if row < target.shape[0]:
+        for column in range(target.shape[1]):
+            target[row, column] = source[row, column]
+
+
+@kernel
+def _check_rays_kernel(origins, directions, t_max, unit, bad):
+    """Ray ``row`` (thread): its unit direction (``norm3``, as ``_validate``).
+
+    The first row failing each check goes into ``bad`` (atomic min).
+    """
+    row = cuda.grid(1)
+    if row < origins.shape[0]:
+        ox, oy, oz = origins[row, 0], origins[row, 1], origins[row, 2]
+        if not (math.isfinite(ox) and math.isfinite(oy) and math.isfinite(oz)):
+            cuda.atomic.min(bad, 0, row)
+        elif not math.isfinite(ox * ox + oy * oy + oz * oz):
+            cuda.atomic.min(bad, 1, row)
+        dx, dy, dz = directions[row, 0], directions[row, 1], directions[row, 2]
+        if not (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dz)):
+            cuda.atomic.min(bad, 2, row)
+        else:
+            length = locate.norm3(dx, dy, dz)
+            if length == 0.0:
+                cuda.atomic.min(bad, 3, row)
+            else:
+                unit[row, 0] = dx / length
+                unit[row, 1] = dy / length
+                unit[row, 2] = dz / length
+        if math.isnan(t_max[row]) or t_max[row] < 0.0:
+            cuda.atomic.min(bad, 4, row)
+
+
+@kernel
+def _check_points_kernel(points, bad):
+    """Point ``row`` (thread): the first row not finite into ``bad[0]``."""
+    row = cuda.grid(1)
+    if row < points.shape[0]:
+        if not (math.isfinite(points[row, 0]) and math.isfinite(points[row, 1])
+                and math.isfinite(points[row, 2])):
+            cuda.atomic.min(bad, 0, row)
+
+
+def _gpu_array(name, value, columns):
+    """Return ``value`` as a float64 device array, (m, ``columns``) or (m,) for None.
+
+    A GPU array is read in place (converted on the device unless float64);
+    a host array is copied.
+    """
+    if hasattr(value, "__cuda_array_interface__"):
+        array = cuda.as_cuda_array(value)
+    elif validate.on_gpu(value):  # the simulator's device arrays
+        array = value
+    else:
+        try:
+            array = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} must be numeric, got {value!r}") from None
+        array = cuda.to_device(np.ascontiguousarray(np.atleast_2d(array)))
+    wanted = "(m,)" if columns is None else f"(m, {columns})"
+    if (array.ndim != 1) if columns is None else (array.ndim != 2 or array.shape[1] != columns):
+        raise ValueError(f"{name} must have shape {wanted}, got {tuple(array.shape)}")
+    if array.dtype != np.float64:
+        if array.dtype.kind not in "fiu":
+            raise ValueError(f"{name} must be numeric, got dtype {array.dtype}")
+        converted = cuda.device_array(array.shape, dtype=np.float64)
+        _launch(_cast_kernel if columns is None else _cast_rows_kernel, array.shape[0], array,
+                converted)
+        array = converted
+    return array
+
+
+def _first_bad(bad):
+    """Return the first row failing each check, or -1 (``bad`` on the device)."""
+    rows = bad.copy_to_host()
+    return [int(row) if row != BIG else -1 for row in rows]
+
+
+def trace_gpu_inputs(grid, origins, directions, t_max):
+    """``trace_many`` where some input is a GPU array: checked on the device, traced."""
+    require()
+    if directions is None:
+        both = _gpu_array("origins", origins, 6)
+        origins, directions = both[:, :3], both[:, 3:]
+    else:
+        origins = _gpu_array("origins", origins, 3)
+        directions = _gpu_array("directions", directions, 3)
+        if directions.shape[0] != origins.shape[0]:
+            raise ValueError(f"directions has {directions.shape[0]} rows but origins has "
+                             f"{origins.shape[0]}")
+    n = origins.shape[0]
+    if validate.on_gpu(t_max):
+        d_t_max = _gpu_array("t_max", t_max, None)
+        if d_t_max.shape != (n,):
+            raise ValueError(f"t_max must be a number or have shape ({n},), got "
+                             f"{tuple(d_t_max.shape)}")
+    else:
+        d_t_max = cuda.to_device(validate.distances(t_max, n))
+    unit = cuda.device_array((n, 3), dtype=np.float64)
+    bad = cuda.to_device(np.full(BAD_CHECKS, BIG, dtype=np.int64))
+    if n:
+        _launch(_check_rays_kernel, n, origins, directions, d_t_max, unit, bad)
+    rows = _first_bad(bad)
+    problems = (
+        ("origins", origins, "must be finite; row {row} is {value}"),
+        ("origins", origins, "must be shorter than about 1e154 (its square must be finite); "
+                             "row {row} is {value}"),
+        ("directions", directions, "must be finite; row {row} is {value}"),
+        ("directions", directions, "must be non-zero; row {row} is {value}"),
+        ("t_max", d_t_max, "must be >= 0 (inf allowed); row {row} is {value}"),
+    )
+    for row, (name, array, message) in zip(rows, problems):
+        if row >= 0:
+            value = array[row:row + 1].copy_to_host()[0]
+            value = float(value) if np.ndim(value) == 0 else value.tolist()
+            raise ValueError(f"{name} " + message.format(row=row, value=value))
+    return _trace(grid, origins, unit, d_t_max)
+
+
+def cells_of_gpu_points(grid, points):
+    """``Grid.cell_of`` of a GPU array of points (M, 3): checked and looked up there."""
+    require()
+    points = _gpu_array("points", points, 3)
+    bad = cuda.to_device(np.full(1, BIG, dtype=np.int64))
+    if points.shape[0]:
+        _launch(_check_points_kernel, points.shape[0], points, bad)
+    row = _first_bad(bad)[0]
+    if row >= 0:
+        raise ValueError(f"points must be finite; row {row} is "
+                         f"{points[row:row + 1].copy_to_host()[0].tolist()}")
+    out = cuda.device_array((points.shape[0], 3), dtype=np.int32)
+    if points.shape[0]:
+        _launch(_cells_of_kernel, points.shape[0], points, _device_grid(grid), out)
+    return out
+
+
 # ---- points ---------------------------------------------------------------------------------
 
 @kernel
@@ -313,9 +472,6 @@ def cells_of(grid, points):
 # and the first reach (atomic min), then one thread per shell writes the
 # reached boxes as cells. A ray re-entering a cell is found in a bitmap of
 # the boxes of its cone, one per ray in flight.
-
-BIG = np.iinfo(np.int64).max
-
 
 @kernel
 def _extent_kernel(offsets, cells, ray_cone, j_shifts, n_theta, low_j, high_j, low_k, high_k):

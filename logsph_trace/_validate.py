@@ -138,6 +138,25 @@ def device(value):
     return choice("device", value, DEVICES)
 
 
+def on_gpu(value):
+    """Tell whether ``value`` is a GPU array.
+
+    It speaks the CUDA Array Interface (CuPy, PyTorch, numba-cuda), or is a
+    device array of Numba's CUDA simulator.
+    """
+    return (hasattr(value, "__cuda_array_interface__")
+            or type(value).__module__.startswith("numba.cuda.simulator"))
+
+
+def host_only(device, **values):
+    """GPU arrays need ``device="cuda"``: say so rather than fail inside numpy."""
+    if device != "cuda":
+        for name, value in values.items():
+            if on_gpu(value):
+                raise ValueError(f"{name} is a GPU array: pass device='cuda', or copy it to "
+                                 "the host first")
+
+
 def vectors(name, value, rows=None):
     """Coerce to a C-contiguous (m, 3) float64 array; reject NaN and inf."""
     try:

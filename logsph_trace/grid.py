@@ -281,6 +281,8 @@ class Grid:
         device : {"cpu", "cuda"}
             ``"cuda"``: look the points up on an NVIDIA GPU (see
             :func:`~logsph_trace.trace_many`); the cells stay there.
+            ``points`` may then be a GPU array (CUDA Array Interface), shape
+            (M, 3), read in place.
 
         Returns
         -------
@@ -297,6 +299,9 @@ class Grid:
             ``device="cuda"`` without a usable GPU or numba-cuda.
         """
         validate.device(device)
+        validate.host_only(device, points=points)
+        if validate.on_gpu(points):
+            return cuda_backend().cells_of_gpu_points(self, points)
         array, single = validate.points("points", points)
         if device == "cuda":
             cells = cuda_backend().cells_of(self, array)

@@ -61,9 +61,12 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     device : {"cpu", "cuda"}
         ``"cuda"``: ``"exact"`` only, on an NVIDIA GPU through numba-cuda
         (``pip install "logsph_trace[cuda]"``), the same traversal source as
-        the CPU's. The inputs are numpy arrays, copied to the GPU; the
-        result's arrays stay there (see :class:`Traces`). ``parallel`` does
-        not apply; ``out`` is not supported.
+        the CPU's. The inputs are numpy arrays, copied to the GPU, or GPU
+        arrays (any CUDA Array Interface object: CuPy, PyTorch, numba-cuda),
+        read in place when float64 and converted on the device otherwise,
+        and checked there as numpy inputs are on the host. The result's
+        arrays stay on the GPU (see :class:`Traces`). ``parallel`` does not
+        apply; ``out`` is not supported.
 
     Returns
     -------
@@ -75,8 +78,9 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     ValueError
         Wrong shapes, NaN or infinite values, zero directions, unknown method
         or device, bad ``default_t``, ``max_iter`` or ``t_max``, ``out`` with
-        another method or with ``device="cuda"``, or ``grid`` not a
-        :class:`Grid` -- before any kernel runs.
+        another method or with ``device="cuda"``, GPU arrays without
+        ``device="cuda"``, or ``grid`` not a :class:`Grid` -- before any
+        traversal runs.
     TypeError
         ``out`` not a :class:`TraceBuffers`.
     RuntimeError
@@ -97,6 +101,9 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
             raise ValueError(f"{name} is supported by method='exact' only, got method={method!r}")
     if out is not None and not isinstance(out, TraceBuffers):
         raise TypeError(f"out must be a TraceBuffers, got {type(out).__name__}")
+    validate.host_only(device, origins=origins, directions=directions, t_max=t_max)
+    if device == "cuda" and any(validate.on_gpu(v) for v in (origins, directions, t_max)):
+        return cuda_backend().trace_gpu_inputs(grid, origins, directions, t_max)
     origins, directions = validate.rays(origins, directions)
     parallel = bool(parallel)
     if method == "exact":

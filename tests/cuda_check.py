@@ -165,6 +165,82 @@ def compare_map(arrays, key):
     return problems
 
 
+def gpu_input_cases(seed=9, n=60):
+    """{name: (origins, directions, t_max)} for inputs already on the GPU: random
+    rays on the log grid as float64 and float32, one combined (m, 6) array, and
+    bad rows (NaN, an origin too long to square, a zero direction, a negative
+    t_max) whose errors must read as the CPU's."""
+    rng = np.random.default_rng(seed)
+    origins = rng.uniform(-13.0, 13.0, (n, 3))
+    directions = rng.normal(size=(n, 3))
+    t_max = rng.uniform(0.0, 26.0, n)
+    t_max[::4] = np.inf
+    bad = {}
+    for what, name, row, value in (("nan origin", "origins", 7, [np.nan, 0.0, 1.0]),
+                                   ("huge origin", "origins", 5, [1e200, 0.0, 0.0]),
+                                   ("inf direction", "directions", 3, [0.0, -np.inf, 0.0]),
+                                   ("zero direction", "directions", 9, [0.0, 0.0, 0.0])):
+        arrays = {"origins": origins.copy(), "directions": directions.copy()}
+        arrays[name][row] = value
+        bad[what] = (arrays["origins"], arrays["directions"], t_max)
+    negative = t_max.copy()
+    negative[11] = -0.5
+    bad["negative t_max"] = (origins, directions, negative)
+    return {"float64": (origins, directions, t_max),
+            "float32": (origins.astype(np.float32), directions.astype(np.float32), t_max),
+            **{f"bad {what}": case for what, case in bad.items()}}
+
+
+def cpu_gpu_inputs(all_cases):
+    """The CPU's traces of each good case and its error message for each bad one."""
+    arrays = {}
+    for key, (origins, directions, t_max) in all_cases.items():
+        arrays[f"gpu inputs {key}|rays"] = np.c_[origins, directions, t_max]
+        arrays[f"gpu inputs {key}|dtype"] = np.array(str(origins.dtype))
+        try:
+            traces = lt.trace_many(GRIDS["log"](), origins, directions, t_max=t_max)
+        except ValueError as error:
+            arrays[f"gpu inputs {key}|error"] = np.array(str(error))
+            continue
+        for field in ("offsets", "cells", "t_enter", "t_exit"):
+            arrays[f"gpu inputs {key}|{field}"] = getattr(traces, field)
+    return arrays
+
+
+def compare_gpu_inputs(arrays, key):
+    """The case traced from arrays put on the GPU first (and once as one (m, 6) array)."""
+    from numba import cuda
+
+    rays = arrays[f"{key}|rays"]
+    dtype = str(arrays[f"{key}|dtype"])
+    origins, directions = (cuda.to_device(np.ascontiguousarray(rays[:, c].astype(dtype)))
+                           for c in (slice(0, 3), slice(3, 6)))
+    calls = [lambda: lt.trace_many(GRIDS["log"](), origins, directions,
+                                   t_max=cuda.to_device(rays[:, 6].copy()), device="cuda")]
+    if dtype == "float64" and f"{key}|error" not in arrays:
+        calls.append(lambda: lt.trace_many(GRIDS["log"](), cuda.to_device(rays[:, :6].copy()),
+                                           t_max=rays[:, 6], device="cuda"))
+    problems = []
+    for call in calls:
+        if f"{key}|error" in arrays:
+            want = str(arrays[f"{key}|error"])
+            try:
+                call()
+                problems.append(f"{key}: no error, the CPU said {want!r}")
+            except ValueError as error:
+                if str(error) != want:
+                    problems.append(f"{key}: {str(error)!r}, the CPU said {want!r}")
+            continue
+        got = call().to_host()
+        if not (np.array_equal(got.offsets, arrays[f"{key}|offsets"])
+                and np.array_equal(got.cells, arrays[f"{key}|cells"])):
+            problems.append(f"{key}: cells differ")
+            continue
+        for field in ("t_enter", "t_exit"):
+            _close(getattr(got, field), arrays[f"{key}|{field}"], f"{key}: {field}", problems)
+    return problems
+
+
 def cone_cases(seed=6):
     """{name: (grid name, apexes, axes, half-angles, n_rays)}: batches of gaze cones on
     every grid kind -- from outside, from the egocentric gap and the centre itself,
@@ -234,14 +310,21 @@ def compare(arrays):
         if " cones " in key:
             problems += compare_cones(arrays, key)
             continue
+        if key.startswith("gpu inputs"):
+            problems += compare_gpu_inputs(arrays, key)
+            continue
         if key.endswith(" map"):
             problems += compare_map(arrays, key)
             continue
         if key.endswith(" points"):
-            got = GRIDS[str(arrays[f"{key}|grid"])]().cell_of(arrays[f"{key}|points"],
-                                                              device="cuda")
-            if not np.array_equal(got.copy_to_host(), arrays[f"{key}|cells"]):
-                problems.append(f"{key}: cells differ")
+            from numba import cuda
+
+            points = arrays[f"{key}|points"]
+            grid = GRIDS[str(arrays[f"{key}|grid"])]()
+            for where, given in (("host", points), ("GPU", cuda.to_device(points))):
+                got = grid.cell_of(given, device="cuda")
+                if not np.array_equal(got.copy_to_host(), arrays[f"{key}|cells"]):
+                    problems.append(f"{key} from the {where}: cells differ")
             continue
         rays = arrays[f"{key}|rays"]
         grid = GRIDS[str(arrays[f"{key}|grid"])]()

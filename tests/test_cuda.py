@@ -20,8 +20,10 @@ from cuda_check import (
     cone_cases,
     cpu_cells,
     cpu_cones,
+    cpu_gpu_inputs,
     cpu_maps,
     cpu_traces,
+    gpu_input_cases,
     map_cases,
     point_cases,
 )
@@ -63,6 +65,16 @@ def test_simulated_gpu_cones_and_cells_of_points_equal_the_cpu(tmp_path):
     assert result.stdout.strip() == "all equal"
 
 
+def test_simulated_gpu_inputs_are_read_and_checked_on_the_device(tmp_path):
+    # Origins, directions and t_max already on the GPU (float64, float32, one
+    # (m, 6) array): the CPU's traces; bad rows: the CPU's error messages.
+    path = tmp_path / "inputs.npz"
+    np.savez(path, **cpu_gpu_inputs(gpu_input_cases()))
+    result = _simulated([str(path)], tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.strip() == "all equal"
+
+
 def test_simulated_gpu_map_equals_the_cpu(tmp_path):
     # Scans in a row into one map on every grid kind -- from the centre, 10 cm
     # off, from the gap and from inside the region, every other one cut at a
@@ -94,7 +106,8 @@ def test_gpu_traces_equal_the_cpu_on_a_real_device():
         pytest.skip("no CUDA GPU here")
     problems = compare({**cpu_traces(cases(n_random=5000, n_singular=100)),
                         **cpu_cones(cone_cases()), **cpu_cells(point_cases()),
-                        **cpu_maps(map_cases(n_points=5000))})
+                        **cpu_maps(map_cases(n_points=5000)),
+                        **cpu_gpu_inputs(gpu_input_cases())})
     assert not problems, problems
 
 
@@ -150,6 +163,23 @@ def test_an_unknown_device_is_a_value_error(call):
 def test_bad_cuda_options_are_value_errors_before_any_gpu_is_needed(kwargs, match):
     with pytest.raises(ValueError, match=match):
         lt.trace_many(GRID, [[0, 0, -5.0]], [[0, 0, 1.0]], **kwargs)
+
+
+class _OnTheGPU:
+    """Stands for a CuPy or PyTorch array: only its interface is looked at."""
+
+    __cuda_array_interface__ = {"shape": (1, 3), "typestr": "<f8", "data": (0, False),
+                                "version": 3}
+
+
+@pytest.mark.parametrize("call", [
+    lambda: lt.trace_many(GRID, _OnTheGPU(), [[0, 0, 1.0]]),
+    lambda: lt.trace_many(GRID, [[0, 0, -5.0]], [[0, 0, 1.0]], t_max=_OnTheGPU()),
+    lambda: GRID.cell_of(_OnTheGPU()),
+])
+def test_gpu_arrays_without_device_cuda_are_a_clear_value_error(call):
+    with pytest.raises(ValueError, match="is a GPU array: pass device='cuda'"):
+        call()
 
 
 def test_a_host_map_answers_device_questions(tmp_path):
