@@ -84,23 +84,15 @@ def thread_counts(text):
 
 
 def motorcycle_points(sensor=(0.0, 0.0, 0.0)):
-    """The Middlebury 2014 Motorcycle frame scikit-image ships, as points in a map's frame.
+    """The Middlebury 2014 Motorcycle frame (``logsph_trace.datasets.motorcycle``) as
+    points in a map's frame, the camera at ``sensor`` looking along +z with
+    image-up along +y (``depth_to_points``' default pose, moved); pixels
+    without depth dropped."""
+    from logsph_trace import datasets
 
-    Depth from the ground-truth disparity, Z = f B / (d + doffs), with the
-    calibration in ``skimage.data.stereo_motorcycle``'s docstring; invalid
-    pixels (inf) are dropped. The camera sits at ``sensor`` looking along +z
-    with image-up along +y, so OpenCV's (x, y, z) becomes the map's (-x, -y, z).
-    """
-    from skimage.data import stereo_motorcycle
-
-    focal, cx, cy, doffs, baseline = 994.978, 311.193, 254.877, 31.086, 0.193001
-    _, _, disparity = stereo_motorcycle()
-    valid = np.isfinite(disparity)
-    rows, columns = np.nonzero(valid)
-    z = focal * baseline / (disparity[valid].astype(np.float64) + doffs)
-    x = (columns - cx) * z / focal
-    y = (rows - cy) * z / focal
-    return np.c_[-x, -y, z] + np.asarray(sensor, dtype=np.float64)
+    frame = datasets.motorcycle()
+    pose = (np.diag([-1.0, -1.0, 1.0]), np.asarray(sensor, dtype=np.float64))
+    return lt.depth_to_points(frame.depth, frame.intrinsics, pose).points
 
 
 def write_results(name, argv, text, record):

@@ -9,21 +9,25 @@ from importlib import metadata as _metadata
 from ._validate import AngleUnitWarning
 from .cone import ConeTrace, trace_cone, trace_cones
 from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
-from .occupancy import GazeTargets, OccupancyGrid, fixation_probability, gaze_targets
+from .occupancy import GazeTargets, OccupancyGrid, ScanStats, fixation_probability, gaze_targets
+from .sensor import DepthPoints, depth_to_points
 from .trace import METHODS, trace, trace_many
 from .traces import Trace, TraceBuffers, Traces
 
 __all__ = [
     "AngleUnitWarning",
     "ConeTrace",
+    "DepthPoints",
     "GazeTargets",
     "Grid",
     "METHODS",
     "OccupancyGrid",
+    "ScanStats",
     "Trace",
     "TraceBuffers",
     "Traces",
     "cartesian_to_spherical",
+    "depth_to_points",
     "fixation_probability",
     "from_ros",
     "gaze_targets",

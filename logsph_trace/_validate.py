@@ -157,8 +157,8 @@ def host_only(device, **values):
                                  "the host first")
 
 
-def vectors(name, value, rows=None):
-    """Coerce to a C-contiguous (m, 3) float64 array; reject NaN and inf."""
+def _rows_of_three(name, value, rows=None):
+    """Coerce to a (m, 3) float64 array (a (3,) vector is one row)."""
     try:
         array = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -169,10 +169,28 @@ def vectors(name, value, rows=None):
         raise ValueError(f"{name} must have shape (m, 3) or (3,), got {np.shape(value)}")
     if rows is not None and array.shape[0] != rows:
         raise ValueError(f"{name} has {array.shape[0]} rows but origins has {rows}")
+    return array
+
+
+def vectors(name, value, rows=None):
+    """Coerce to a C-contiguous (m, 3) float64 array; reject NaN and inf."""
+    array = _rows_of_three(name, value, rows)
     if not np.isfinite(array).all():  # one flat pass; a reduction per row costs 30x more
         row = int(np.argmin(np.all(np.isfinite(array), axis=1)))
         raise ValueError(f"{name} must be finite; row {row} is {array[row].tolist()}")
     return np.ascontiguousarray(array)
+
+
+def finite_rows(name, value):
+    """Coerce to a C-contiguous (m, 3) float64 array without its NaN or infinite rows.
+
+    Returns (the array, the number of rows dropped).
+    """
+    array = _rows_of_three(name, value)
+    if np.isfinite(array).all():  # the usual case: one flat pass
+        return np.ascontiguousarray(array), 0
+    keep = np.all(np.isfinite(array), axis=1)
+    return np.ascontiguousarray(array[keep]), int(array.shape[0] - np.count_nonzero(keep))
 
 
 def row_norms(vectors):

@@ -24,7 +24,25 @@ from ._files import atomic_write, npz_path
 from .cone import aggregate_cone, cones_on_gpu, sample_rays
 from .grid import Grid
 from .kernels import occupancy as _kernels
+from .sensor import depth_to_points
 from .trace import cuda_backend, trace_many
+
+
+@dataclass(frozen=True)
+class ScanStats:
+    """What a scan put into the map.
+
+    Attributes
+    ----------
+    rays : int
+        Rays integrated (points, or pixels with a depth).
+    invalid : int
+        Points or pixels skipped: NaN or infinite points, pixels without
+        depth (0, NaN, infinite, negative).
+    """
+
+    rays: int
+    invalid: int
 
 
 def _logit(p):
@@ -80,6 +98,7 @@ class OccupancyGrid:
         validate.fits("grid", int(np.prod(grid.shape, dtype=np.float64))
                       * (4 + numba.get_num_threads()), f"an occupancy map of {grid.shape} cells")
         self._grid = grid
+        self._last_scan = None
         self.p_hit = validate.probability("p_hit", p_hit, 0.5, 1.0)
         self.p_miss = validate.probability("p_miss", p_miss, 0.0, 0.5)
         self.p_min = validate.probability("p_min", p_min, 0.0, 0.5)
@@ -141,7 +160,7 @@ class OccupancyGrid:
         threshold = validate.probability("threshold", threshold)
         return np.argwhere(self._host_log_odds() > _logit(threshold)).astype(np.int32)
 
-    def integrate(self, points, sensor_origin, max_range=None):
+    def integrate(self, points, sensor_origin, max_range=None, invalid="raise"):
         """Integrate one scan: free space along each sensor ray, its end cell occupied.
 
         Parameters
@@ -151,15 +170,26 @@ class OccupancyGrid:
         sensor_origin : array_like, shape (3,)
             Where the rays start.
         max_range : float, optional
-            Points farther than this carve free space up to ``max_range`` and
-            mark nothing occupied (OctoMap's rule for unreliable far returns).
+            Points farther than this from the sensor carve free space up to
+            ``max_range`` and mark nothing occupied (OctoMap's maxrange, for
+            unreliable far returns).
+        invalid : {"raise", "skip"}
+            What a NaN or infinite point means. ``"raise"`` (default): a
+            mistake, a ``ValueError``. ``"skip"``: a sensor's "no return"
+            (organised point clouds mark missing pixels with NaN): the row is
+            skipped and counted in :attr:`last_scan`. A point at the sensor
+            itself is no ray and changes nothing.
 
         Returns
         -------
         self
         """
         start = time.perf_counter()
-        points = validate.vectors("points", points)
+        validate.choice("invalid", invalid, ("raise", "skip"))
+        if invalid == "skip":
+            points, skipped = validate.finite_rows("points", points)
+        else:
+            points, skipped = validate.vectors("points", points), 0
         origin = validate.point("sensor_origin", sensor_origin)
         if max_range is None:
             max_range = np.inf
@@ -167,6 +197,7 @@ class OccupancyGrid:
             max_range = validate.finite("max_range", max_range)
             if not max_range > 0:
                 raise ValueError(f"max_range must be a positive number, got {max_range!r}")
+        self._last_scan = ScanStats(points.shape[0], skipped)
         grid = self.grid
         n_cells = int(np.prod(grid.shape))
         threads = numba.get_num_threads()
@@ -205,6 +236,48 @@ class OccupancyGrid:
             return self._log_odds[tuple(np.asarray(cells).T)]
         flat = np.ravel_multi_index(tuple(np.asarray(cells).T), self.grid.shape)
         return self._cuda.values_at(self._flat(), flat.astype(np.int64))
+
+    @property
+    def last_scan(self):
+        """What the last :meth:`integrate` or :meth:`integrate_depth` put in (:class:`ScanStats`).
+
+        ``None`` before the first.
+        """
+        return self._last_scan
+
+    def integrate_depth(self, depth, intrinsics, pose=None, max_range=None, depth_scale=1.0):
+        """Integrate one depth image from a camera at ``pose``.
+
+        The image is back-projected by :func:`~logsph_trace.depth_to_points`
+        and integrated as :meth:`integrate` does, from the camera's centre.
+
+        Parameters
+        ----------
+        depth : array_like, shape (rows, columns)
+            Z along the optical axis per pixel (any numeric dtype, times
+            ``depth_scale``); 0, NaN, infinite and negative pixels have no
+            depth: they are skipped and counted in :attr:`last_scan`.
+        intrinsics : array_like
+            A 3 x 3 camera matrix (OpenCV's) or ``(fx, fy, cx, cy)``, pixels.
+        pose : None, array_like (4, 4), or (R, t)
+            Camera (OpenCV frame: x right, y down, z forward) to map.
+            ``None``: the camera at the map's origin looking along +z with
+            image-up along +y, so OpenCV's (x, y, z) is the map's (-x, -y, z).
+            ``docs/sensors.md`` draws it.
+        max_range : float, optional
+            As for :meth:`integrate`: farther returns clear free space up to
+            ``max_range`` and mark no hit.
+        depth_scale : float
+            The map's length unit per depth unit (0.001 for millimetres).
+
+        Returns
+        -------
+        self
+        """
+        scan = depth_to_points(depth, intrinsics, pose, depth_scale)
+        self.integrate(scan.points, scan.origin, max_range=max_range, invalid="skip")
+        self._last_scan = ScanStats(self._last_scan.rays, self._last_scan.invalid + scan.invalid)
+        return self
 
     def decay(self, factor):
         """Fade the map towards unknown: ``log_odds *= factor`` (a short-term memory).
