@@ -9,14 +9,18 @@ from importlib import metadata as _metadata
 from ._validate import AngleUnitWarning
 from .cone import ConeTrace, trace_cone, trace_cones
 from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
+from .objects import GazeAccumulator, GazeObjects, gaze_objects, label_objects
 from .occupancy import GazeTargets, OccupancyGrid, ScanStats, fixation_probability, gaze_targets
-from .sensor import DepthPoints, depth_to_points
+from .sensor import DepthPoints, Gaze, depth_to_points, gaze_from_pitch_yaw, gaze_from_vector
 from .trace import METHODS, trace, trace_many
 from .traces import Trace, TraceBuffers, Traces
 
 __all__ = [
     "AngleUnitWarning",
     "ConeTrace",
+    "Gaze",
+    "GazeAccumulator",
+    "GazeObjects",
     "DepthPoints",
     "GazeTargets",
     "Grid",
@@ -30,7 +34,11 @@ __all__ = [
     "depth_to_points",
     "fixation_probability",
     "from_ros",
+    "gaze_from_pitch_yaw",
+    "gaze_from_vector",
+    "gaze_objects",
     "gaze_targets",
+    "label_objects",
     "spherical_to_cartesian",
     "trace",
     "trace_cone",

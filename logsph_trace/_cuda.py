@@ -716,16 +716,19 @@ def _scale_kernel(values, factor):
         values[t] *= factor
 
 
-def integrate(grid, log_odds, points, origin, max_range, update):
+def integrate(grid, log_odds, points, origin, max_range, update, want_hits=False):
     """Integrate a checked scan into the device map ``log_odds`` (flat float32).
 
     ``update``: the log-odds of a hit and a miss and the clamps. The same
-    cells as the CPU's ``OccupancyGrid.integrate``, the same update.
+    cells as the CPU's ``OccupancyGrid.integrate``, the same update. With
+    ``want_hits``, return each ray's hit cell on the host, or -1, indexed as
+    the CPU's kernels index it (the map's index from the centre, else
+    column-major).
     """
     require()
     n_rays, n_cells = points.shape[0], log_odds.shape[0]
     if n_rays == 0:
-        return
+        return np.empty(0, dtype=np.int64)
     args = _device_grid(grid)
     d_points = cuda.to_device(points)
     hits = cuda.device_array(n_rays, dtype=np.int64)
@@ -737,7 +740,7 @@ def integrate(grid, log_odds, points, origin, max_range, update):
                 hits)
         _launch(_flag_hits_kernel, n_rays, hits, hit)
         _launch(_apply_radial_kernel, n_cells, log_odds, free_extent, hit, *update)
-        return
+        return hits.copy_to_host() if want_hits else None
     zone = np.array([
         locate.rho_zone(*origin, grid.rho_edges, grid.rho_kind),
         locate.theta_zone(origin[0], origin[2], grid.theta_edges, grid.theta_kind),
@@ -751,6 +754,7 @@ def integrate(grid, log_odds, points, origin, max_range, update):
                 d_zone, times, zones, lookups, free, hits)
     _launch(_flag_hits_kernel, n_rays, hits, hit)
     _launch(_apply_scan_kernel, n_cells, log_odds, free, hit, grid.n_rho, *update)
+    return hits.copy_to_host() if want_hits else None
 
 
 def decay(log_odds, factor):

@@ -184,13 +184,25 @@ def vectors(name, value, rows=None):
 def finite_rows(name, value):
     """Coerce to a C-contiguous (m, 3) float64 array without its NaN or infinite rows.
 
-    Returns (the array, the number of rows dropped).
+    Returns (the array, the rows kept: a boolean mask, or None when all are).
     """
     array = _rows_of_three(name, value)
     if np.isfinite(array).all():  # the usual case: one flat pass
-        return np.ascontiguousarray(array), 0
+        return np.ascontiguousarray(array), None
     keep = np.all(np.isfinite(array), axis=1)
-    return np.ascontiguousarray(array[keep]), int(array.shape[0] - np.count_nonzero(keep))
+    return np.ascontiguousarray(array[keep]), keep
+
+
+def labels(name, value, shape):
+    """Object labels: integers >= 0 of ``shape``, as a contiguous int64 array."""
+    array = np.asarray(value)
+    if array.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
+    if array.dtype.kind not in "iub":
+        raise ValueError(f"{name} must be integers (0 = no object), got dtype {array.dtype}")
+    if array.size and array.min() < 0:
+        raise ValueError(f"{name} must be >= 0 (0 = no object), got {int(array.min())}")
+    return np.ascontiguousarray(array, dtype=np.int64)
 
 
 def row_norms(vectors):

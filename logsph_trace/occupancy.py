@@ -99,6 +99,7 @@ class OccupancyGrid:
                       * (4 + numba.get_num_threads()), f"an occupancy map of {grid.shape} cells")
         self._grid = grid
         self._last_scan = None
+        self._labels = np.zeros(grid.shape, dtype=np.int32)
         self.p_hit = validate.probability("p_hit", p_hit, 0.5, 1.0)
         self.p_miss = validate.probability("p_miss", p_miss, 0.0, 0.5)
         self.p_min = validate.probability("p_min", p_min, 0.0, 0.5)
@@ -142,8 +143,10 @@ class OccupancyGrid:
         """Return the map on the CPU: ``self`` for a CPU map, else a copy."""
         if self._cuda is None:
             return self
-        return OccupancyGrid(self.grid, self.p_hit, self.p_miss, self.p_min, self.p_max,
+        host = OccupancyGrid(self.grid, self.p_hit, self.p_miss, self.p_min, self.p_max,
                              log_odds=self._host_log_odds())
+        host.labels = self._labels
+        return host
 
     def __repr__(self):
         occupied = int(np.count_nonzero(self._host_log_odds() > 0))
@@ -160,7 +163,7 @@ class OccupancyGrid:
         threshold = validate.probability("threshold", threshold)
         return np.argwhere(self._host_log_odds() > _logit(threshold)).astype(np.int32)
 
-    def integrate(self, points, sensor_origin, max_range=None, invalid="raise"):
+    def integrate(self, points, sensor_origin, max_range=None, invalid="raise", labels=None):
         """Integrate one scan: free space along each sensor ray, its end cell occupied.
 
         Parameters
@@ -179,6 +182,11 @@ class OccupancyGrid:
             (organised point clouds mark missing pixels with NaN): the row is
             skipped and counted in :attr:`last_scan`. A point at the sensor
             itself is no ray and changes nothing.
+        labels : array_like of int, shape (M,), optional
+            The object each point lies on (0 = none), e.g. from a 2-D
+            detector. Each cell a ray ends in takes the label most of this
+            scan's hits in it carry (ties: the smaller label); other cells
+            keep theirs (see :attr:`labels`).
 
         Returns
         -------
@@ -187,9 +195,16 @@ class OccupancyGrid:
         start = time.perf_counter()
         validate.choice("invalid", invalid, ("raise", "skip"))
         if invalid == "skip":
-            points, skipped = validate.finite_rows("points", points)
+            rows = np.shape(points)[0] if np.ndim(points) == 2 else 1
+            points, keep = validate.finite_rows("points", points)
+            skipped = 0 if keep is None else int(keep.size - points.shape[0])
         else:
-            points, skipped = validate.vectors("points", points), 0
+            rows = np.shape(points)[0] if np.ndim(points) == 2 else 1
+            points, keep, skipped = validate.vectors("points", points), None, 0
+        if labels is not None:
+            labels = validate.labels("labels", labels, (rows,))
+            if keep is not None:
+                labels = labels[keep]
         origin = validate.point("sensor_origin", sensor_origin)
         if max_range is None:
             max_range = np.inf
@@ -203,12 +218,11 @@ class OccupancyGrid:
         threads = numba.get_num_threads()
         update = (_logit(self.p_hit), _logit(self.p_miss), _logit(self.p_min), _logit(self.p_max))
         if self._cuda is not None:
-            self._cuda.integrate(grid, self._flat(), points, origin, max_range, update)
-            return self
-        # Each ray's direction, length and hit are set up in the kernels, in parallel.
-        hits = np.empty(points.shape[0], dtype=np.int64)
-        if not np.any(origin):
-            # The egocentric case: every ray is radial.
+            hits = self._cuda.integrate(grid, self._flat(), points, origin, max_range, update,
+                                        labels is not None)
+        elif not np.any(origin):
+            # The egocentric case: every ray is radial. Hits are map indices.
+            hits = np.empty(points.shape[0], dtype=np.int64)
             free_extent = np.zeros((threads, grid.n_theta * grid.n_phi), dtype=np.int64)
             start = lap("prepare", start)
             _kernels.mark_radial(points, max_range, grid.kernel_args(), free_extent, hits)
@@ -217,15 +231,58 @@ class OccupancyGrid:
                                   np.zeros(n_cells, dtype=np.uint8), grid.n_theta, grid.n_phi,
                                   *update)
             lap("apply", start)
-            return self
-        words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
-        free = words.view(np.uint8)  # the same memory, a byte per cell
-        start = lap("prepare", start)
-        _kernels.mark_scan(origin, points, max_range, grid.kernel_args(), free, hits)
-        start = lap("mark", start)
-        _kernels.apply_scan(self.log_odds.reshape(-1), free, words, hits, grid.n_rho, *update)
-        lap("apply", start)
+        else:
+            # Each ray's direction, length and hit are set up in the kernels, in
+            # parallel. Hits are column-major (see apply_scan).
+            hits = np.empty(points.shape[0], dtype=np.int64)
+            words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
+            free = words.view(np.uint8)  # the same memory, a byte per cell
+            start = lap("prepare", start)
+            _kernels.mark_scan(origin, points, max_range, grid.kernel_args(), free, hits)
+            start = lap("mark", start)
+            _kernels.apply_scan(self.log_odds.reshape(-1), free, words, hits, grid.n_rho,
+                                *update)
+            lap("apply", start)
+        if labels is not None:
+            if np.any(origin):  # the walk's hits are column-major (see apply_scan)
+                hit = hits >= 0
+                column, i = np.divmod(hits[hit], grid.n_rho)
+                hits[hit] = i * (grid.n_theta * grid.n_phi) + column
+            self._vote(hits, labels)
         return self
+
+    @property
+    def labels(self):
+        """The object of each cell, int32, shape ``grid.shape``; 0 is none (on the host).
+
+        Voted in by :meth:`integrate` and :meth:`integrate_depth` with
+        ``labels``, or found by :func:`label_objects`. Assigning checks the
+        shape and that the values are integers >= 0.
+        """
+        return self._labels
+
+    @labels.setter
+    def labels(self, value):
+        labels = validate.labels("labels", value, self.grid.shape)
+        if labels.size and labels.max() > np.iinfo(np.int32).max:
+            raise ValueError(f"labels must fit in int32, got {int(labels.max())}")
+        self._labels = labels.astype(np.int32)
+
+    def _vote(self, hits, labels):
+        """Give each cell hit in this scan the label most of its hits carry."""
+        hit = hits >= 0
+        if not np.any(hit):
+            return
+        span = int(labels.max()) + 1
+        keys, counts = np.unique(hits[hit] * span + labels[hit], return_counts=True)
+        cells, votes = np.divmod(keys, span)
+        # Per cell the most votes, ties to the smaller label: sort by cell, then
+        # by votes down, then by label up; keep each cell's first row.
+        order = np.lexsort((votes, -counts, cells))
+        first = np.ones(order.shape[0], dtype=bool)
+        first[1:] = cells[order][1:] != cells[order][:-1]
+        winners = order[first]
+        self._labels.reshape(-1)[cells[winners]] = votes[winners]
 
     def _values_at(self, cells):
         """Return the log-odds of ``cells`` ((u, 3) indices in the grid) on the host.
@@ -245,7 +302,8 @@ class OccupancyGrid:
         """
         return self._last_scan
 
-    def integrate_depth(self, depth, intrinsics, pose=None, max_range=None, depth_scale=1.0):
+    def integrate_depth(self, depth, intrinsics, pose=None, max_range=None, depth_scale=1.0,
+                        labels=None):
         """Integrate one depth image from a camera at ``pose``.
 
         The image is back-projected by :func:`~logsph_trace.depth_to_points`
@@ -269,13 +327,21 @@ class OccupancyGrid:
             ``max_range`` and mark no hit.
         depth_scale : float
             The map's length unit per depth unit (0.001 for millimetres).
+        labels : array_like of int, shape (rows, columns), optional
+            An instance image aligned with ``depth`` (0 = no object), e.g.
+            from a 2-D detector or segmenter; voted into the cells the hits
+            land in, as :meth:`integrate` does.
 
         Returns
         -------
         self
         """
         scan = depth_to_points(depth, intrinsics, pose, depth_scale)
-        self.integrate(scan.points, scan.origin, max_range=max_range, invalid="skip")
+        if labels is not None:
+            labels = validate.labels("labels", labels, np.shape(depth))
+            labels = labels[scan.pixels[:, 0], scan.pixels[:, 1]]
+        self.integrate(scan.points, scan.origin, max_range=max_range, invalid="skip",
+                       labels=labels)
         self._last_scan = ScanStats(self._last_scan.rays, self._last_scan.invalid + scan.invalid)
         return self
 
@@ -308,7 +374,8 @@ class OccupancyGrid:
         path = npz_path(path)
         with atomic_write(path) as stream:
             np.savez_compressed(
-                stream, log_odds=self._host_log_odds(), rho_edges=grid.rho_edges,
+                stream, log_odds=self._host_log_odds(), labels=self._labels,
+                rho_edges=grid.rho_edges,
                 theta_edges=grid.theta_edges, phi_edges=grid.phi_edges,
                 spacing=np.array(grid.spacing),
                 probabilities=np.array([self.p_hit, self.p_miss, self.p_min, self.p_max]),
@@ -343,18 +410,23 @@ class OccupancyGrid:
                 if probabilities.shape != (4,):
                     raise ValueError(f"probabilities must hold 4 numbers, got {probabilities}")
                 log_odds = data["log_odds"]
+                labels = data["labels"] if "labels" in data.files else None  # older files
         except (FileNotFoundError, PermissionError, IsADirectoryError):
             raise
         except (ValueError, TypeError, KeyError, IndexError, EOFError, OSError,
                 zipfile.BadZipFile) as error:
             raise ValueError(f"{path} is not a valid OccupancyGrid file: {error}") from None
         try:
-            return cls(grid, *probabilities.tolist(), log_odds=log_odds, device=device)
+            occupancy = cls(grid, *probabilities.tolist(), log_odds=log_odds, device=device)
+            if labels is not None:
+                occupancy.labels = labels
+            return occupancy
         except ValueError as error:
             raise ValueError(f"{path} is not a valid OccupancyGrid file: {error}") from None
 
 
-# What OccupancyGrid.save writes; older files also hold "kinds", which load ignores.
+# What OccupancyGrid.save must have written; it also writes "labels" (older files
+# lack them: no objects), and older files hold "kinds", which load ignores.
 _SAVED_ARRAYS = frozenset(
     ("log_odds", "rho_edges", "theta_edges", "phi_edges", "spacing", "probabilities")
 )

@@ -116,15 +116,18 @@ def _map_steps(occupancy, scans, sensors, max_range):
     """Integrate the scans, decay, then look: {name: array} of what each step gives."""
     steps = {}
     for s, (points, sensor) in enumerate(zip(scans, sensors)):
-        occupancy.integrate(points, sensor, max_range=max_range if s % 2 else None)
+        occupancy.integrate(points, sensor, max_range=max_range if s % 2 else None,
+                            labels=np.arange(points.shape[0]) % 4)
         steps[f"after scan {s}"] = occupancy.to_host().log_odds.copy()
+        steps[f"labels after scan {s}"] = occupancy.labels.copy()
     # A small depth image with holes, from a camera turned and moved off the centre.
     rng = np.random.default_rng(10)
     rho_max = occupancy.grid.rho_max
     depth = rng.uniform(0.02 * rho_max, 0.9 * rho_max, (9, 12))
     depth[rng.random(depth.shape) < 0.15] = np.nan
     turn = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
-    occupancy.integrate_depth(depth, (9.1, 8.7, 5.6, 4.3), (turn, [0.07, 0.02, -0.05]))
+    occupancy.integrate_depth(depth, (9.1, 8.7, 5.6, 4.3), (turn, [0.07, 0.02, -0.05]),
+                              labels=rng.integers(0, 3, depth.shape))
     steps["after a depth image"] = occupancy.to_host().log_odds.copy()
     occupancy.decay(0.8)
     steps["decayed"] = occupancy.to_host().log_odds.copy()

@@ -1,0 +1,56 @@
+"""Objects in the map (``@jit`` only): connected components of occupied cells."""
+
+import numpy as np
+
+from .._jit import jit
+
+
+@jit
+def components(occupied, wrap_theta, labels):
+    """Label the 26-connected components of ``occupied`` (n_rho, n_theta, n_phi) bool.
+
+    Cells are neighbours when each index differs by at most 1; with
+    ``wrap_theta`` the first and last theta columns are neighbours too (a
+    full circle has no seam). ``labels`` (same shape, int32, zero) gets
+    1, 2, ... per component, numbered in order of each component's first
+    cell in C order; returns how many there are. A flood fill with an
+    explicit stack: every occupied cell is pushed once.
+    """
+    n_rho, n_theta, n_phi = occupied.shape
+    stack = np.empty(occupied.size, dtype=np.int64)
+    count = 0
+    for start in range(occupied.size):
+        i0 = start // (n_theta * n_phi)
+        j0 = (start // n_phi) % n_theta
+        k0 = start % n_phi
+        if not occupied[i0, j0, k0] or labels[i0, j0, k0] != 0:
+            continue
+        count += 1
+        labels[i0, j0, k0] = count
+        stack[0] = start
+        top = 1
+        while top > 0:
+            top -= 1
+            cell = stack[top]
+            i = cell // (n_theta * n_phi)
+            j = (cell // n_phi) % n_theta
+            k = cell % n_phi
+            for di in range(-1, 2):
+                ni = i + di
+                if ni < 0 or ni >= n_rho:
+                    continue
+                for dj in range(-1, 2):
+                    nj = j + dj
+                    if nj < 0 or nj >= n_theta:
+                        if not wrap_theta:
+                            continue
+                        nj = (nj + n_theta) % n_theta
+                    for dk in range(-1, 2):
+                        nk = k + dk
+                        if nk < 0 or nk >= n_phi:
+                            continue
+                        if occupied[ni, nj, nk] and labels[ni, nj, nk] == 0:
+                            labels[ni, nj, nk] = count
+                            stack[top] = (ni * n_theta + nj) * n_phi + nk
+                            top += 1
+    return count

@@ -1,0 +1,221 @@
+"""Objects in the map: voted labels, connected components, the object a gaze names."""
+
+from collections import deque
+
+import numpy as np
+import pytest
+
+import logsph_trace as lt
+from logsph_trace.scene import Box, Scene, table_scene
+
+GRID = lt.Grid(0.3, 10.0, 64, 360, 180)
+
+
+def _table_map(sensor=(0.0, 0.0, 0.0)):
+    scene, eyes, target = table_scene()
+    points, labels, _ = scene.depth_points(sensor=sensor)
+    occupancy = lt.OccupancyGrid(GRID).integrate(points, sensor, labels=labels + 1)
+    return scene, eyes, target, occupancy
+
+
+@pytest.mark.parametrize("sensor", [(0.0, 0.0, 0.0), (0.06, 0.08, 0.0)])
+def test_every_hit_cell_takes_the_label_of_its_points(sensor):
+    scene, _, _, occupancy = _table_map(sensor)
+    points, labels, _ = scene.depth_points(sensor=sensor)
+    cells = GRID.cell_of(points)
+    got = occupancy.labels[tuple(cells.T)]
+    # A cell holding points of two boxes takes the majority; elsewhere the box's own.
+    keys = np.ravel_multi_index(tuple(cells.T), GRID.shape)
+    mixed = np.array([len(set(labels[keys == key])) > 1 for key in np.unique(keys)])
+    assert np.mean(got == labels + 1) > 0.99
+    assert mixed.mean() < 0.05
+    occupied = occupancy.occupied(0.6)
+    assert np.all(occupancy.labels[tuple(occupied.T)] > 0)
+
+
+def test_votes_take_the_majority_and_ties_the_smaller_label():
+    grid = lt.Grid(0.3, 10.0, 8, 12, 6)
+    centre = grid.cell_centers([[5, 3, 2]])[0]
+    other = grid.cell_centers([[6, 7, 4]])[0]
+    points = np.array([centre, centre * 1.001, centre * 0.999, other, other * 1.001])
+    occupancy = lt.OccupancyGrid(grid).integrate(points, (0, 0, 0), labels=[7, 5, 7, 9, 4])
+    assert occupancy.labels[5, 3, 2] == 7 and occupancy.labels[6, 7, 4] == 4
+    occupancy.integrate(points[:1], (0, 0, 0), labels=[3])  # a later scan re-votes its cells
+    assert occupancy.labels[5, 3, 2] == 3 and occupancy.labels[6, 7, 4] == 4
+
+
+def test_depth_labels_are_the_points_labels_of_their_pixels():
+    rng = np.random.default_rng(11)
+    depth = rng.uniform(0.5, 8.0, (12, 16))
+    depth[rng.random(depth.shape) < 0.2] = 0.0
+    image = rng.integers(0, 4, depth.shape)
+    intrinsics = (14.2, 13.9, 7.7, 5.6)
+    pose = (np.diag([-1.0, -1.0, 1.0]), [0.05, -0.03, 0.02])
+    by_depth = lt.OccupancyGrid(GRID).integrate_depth(depth, intrinsics, pose, labels=image)
+    scan = lt.depth_to_points(depth, intrinsics, pose)
+    by_points = lt.OccupancyGrid(GRID).integrate(
+        scan.points, scan.origin, labels=image[scan.pixels[:, 0], scan.pixels[:, 1]])
+    assert np.array_equal(by_depth.labels, by_points.labels) and by_depth.labels.any()
+
+
+def test_labels_are_saved_loaded_and_checked(tmp_path):
+    _, _, _, occupancy = _table_map()
+    loaded = lt.OccupancyGrid.load(occupancy.save(tmp_path / "map"))
+    assert np.array_equal(loaded.labels, occupancy.labels)
+    with pytest.raises(ValueError, match="labels must have shape"):
+        occupancy.labels = np.zeros((2, 2), dtype=int)
+    with pytest.raises(ValueError, match=">= 0"):
+        occupancy.integrate([[1.0, 0.0, 0.0]], (0, 0, 0), labels=[-1])
+    with pytest.raises(ValueError, match="integers"):
+        occupancy.integrate([[1.0, 0.0, 0.0]], (0, 0, 0), labels=[1.5])
+    with pytest.raises(ValueError, match=r"labels must have shape \(2,\)"):
+        occupancy.integrate([[1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], (0, 0, 0), labels=[1])
+
+
+def _components(occupied, wrap):
+    """Breadth-first oracle: 26-neighbourhood, theta wrapping; numbered in C order."""
+    labels = np.zeros(occupied.shape, dtype=int)
+    count = 0
+    n_theta = occupied.shape[1]
+    for start in zip(*np.nonzero(occupied)):
+        if labels[start]:
+            continue
+        count += 1
+        labels[start] = count
+        queue = deque([start])
+        while queue:
+            i, j, k = queue.popleft()
+            for di in (-1, 0, 1):
+                for dj in (-1, 0, 1):
+                    for dk in (-1, 0, 1):
+                        ni, nj, nk = i + di, j + dj, k + dk
+                        if wrap:
+                            nj %= n_theta
+                        inside = (0 <= ni < occupied.shape[0] and 0 <= nj < n_theta
+                                  and 0 <= nk < occupied.shape[2])
+                        if inside and occupied[ni, nj, nk] and not labels[ni, nj, nk]:
+                            labels[ni, nj, nk] = count
+                            queue.append((ni, nj, nk))
+    return labels, count
+
+
+@pytest.mark.parametrize("full", [True, False])
+def test_label_objects_matches_a_breadth_first_oracle(full):
+    theta = (-np.pi, np.pi) if full else (-2.0, 2.5)
+    grid = lt.Grid(0.3, 10.0, 7, 9, 6, theta_range=theta)
+    rng = np.random.default_rng(12)
+    for density in (0.05, 0.15, 0.3):
+        occupied = rng.random(grid.shape) < density
+        occupied[:, 0, 2] = occupied[:, -1, 3] = True  # a diagonal step across the seam
+        occupancy = lt.OccupancyGrid(grid, log_odds=np.where(occupied, 2.0, -1.0))
+        count = lt.label_objects(occupancy)
+        want, want_count = _components(occupied, wrap=full)
+        assert count == want_count and np.array_equal(occupancy.labels, want)
+
+
+def test_an_object_across_the_seam_is_one_object():
+    grid = lt.Grid(0.3, 10.0, 6, 12, 6)
+    log_odds = np.full(grid.shape, -1.0, dtype=np.float32)
+    log_odds[2, 0, 3] = log_odds[2, 11, 3] = log_odds[4, 5, 1] = 2.0
+    occupancy = lt.OccupancyGrid(grid, log_odds=log_odds)
+    assert lt.label_objects(occupancy) == 2
+    assert occupancy.labels[2, 0, 3] == occupancy.labels[2, 11, 3] != occupancy.labels[4, 5, 1]
+
+
+def test_the_gaze_names_the_object_on_the_table():
+    _, eyes, target, occupancy = _table_map()
+    objects = lt.gaze_objects(occupancy, eyes, target - eyes)
+    assert objects.top == 2  # the object (box 1, label 2), not the table under it
+    assert objects.probabilities[0] > objects.probabilities[1:].sum()
+    assert np.all(np.diff(objects.probabilities) <= 0)
+    first = objects.first_cells[0]
+    assert occupancy.labels[tuple(first)] == 2
+    assert 0.0 < objects.first_distances[0] < np.linalg.norm(target - eyes) + 0.2
+
+
+def test_an_occluded_object_ranks_below_its_occluder():
+    # Two boxes in line with the gaze, both in the map (the back one was seen
+    # before the front one arrived): the gaze stops at the front one.
+    back = Box("back", (-0.6, -0.6, 3.0), (0.6, 0.6, 3.1))
+    occupancy = lt.OccupancyGrid(GRID)
+    for scene, offset in ((Scene([back]), 2), (Scene([Box("front", (-0.3, -0.3, 1.8),
+                                                          (0.3, 0.3, 1.9)), back]), 1)):
+        points, labels, _ = scene.depth_points(sensor=(0.0, 0.0, 0.0))
+        for _ in range(3):
+            occupancy.integrate(points, (0.0, 0.0, 0.0), labels=labels + offset)
+    eyes = np.array([0.4, 0.1, 0.4])
+    behind = np.array([0.0, 0.0, 3.0])
+    objects = lt.gaze_objects(occupancy, eyes, behind - eyes, half_angle=np.radians(2))
+    assert list(objects.labels[:2]) == [1, 2]
+    assert objects.probabilities[0] > 2 * objects.probabilities[1]
+
+
+def test_components_name_the_object_when_no_detector_did():
+    scene = Scene([Box("a", (-0.8, -0.2, 2.0), (-0.4, 0.2, 2.1)),
+                   Box("b", (0.4, -0.2, 2.0), (0.8, 0.2, 2.1)),
+                   Box("wall", (-3.0, -1.5, 3.5), (3.0, 1.5, 3.6))])
+    points, _, _ = scene.depth_points()
+    occupancy = lt.OccupancyGrid(GRID).integrate(points, (0.0, 0.0, 0.0))
+    assert lt.label_objects(occupancy) == 3
+    eyes = np.array([0.0, 0.3, 0.5])
+    for centre in ((-0.6, 0.0, 2.0), (0.6, 0.0, 2.0)):
+        objects = lt.gaze_objects(occupancy, eyes, np.array(centre) - eyes)
+        named = occupancy.labels[tuple(GRID.cell_of(np.array(centre) + [0, 0, 0.05]))]
+        assert objects.top == named != 0
+
+
+def test_a_held_look_beats_a_glance():
+    glance = lt.GazeObjects(np.array([1]), np.array([0.9]), np.zeros((1, 3), np.int32),
+                            np.array([1.0]), 0.0)
+    look = lt.GazeObjects(np.array([2]), np.array([0.4]), np.zeros((1, 3), np.int32),
+                          np.array([1.0]), 0.0)
+    memory = lt.GazeAccumulator(half_life=0.5).add(glance, time=0.0)
+    assert memory.top == 1
+    for time in (0.1, 0.2, 0.3):
+        memory.add(look, time=time)
+    assert memory.top == 2
+    labels, scores = memory.scores()
+    assert list(labels) == [2, 1]
+    assert scores[1] == pytest.approx(0.9 * 0.5 ** (0.3 / 0.5), rel=1e-12)
+    stepped = lt.GazeAccumulator(half_life=2.0).add(glance).add(look)  # one unit a gaze
+    assert dict(zip(*stepped.scores()))[1] == pytest.approx(0.9 / np.sqrt(2.0), rel=1e-12)
+    with pytest.raises(ValueError, match="time must not go back"):
+        memory.add(look, time=0.1)
+    with pytest.raises(ValueError, match="half_life must be positive"):
+        lt.GazeAccumulator(half_life=0.0)
+    with pytest.raises(ValueError, match="objects must be GazeObjects"):
+        memory.add([1, 2])
+
+
+def test_gazes_from_estimators():
+    # Zero pitch and yaw look into the camera; the vector form agrees with the
+    # angle form for random angles; a pose moves both.
+    straight = lt.gaze_from_pitch_yaw(0.0, 0.0, (0.1, -0.2, 1.5))
+    assert np.allclose(straight.origin, [-0.1, 0.2, 1.5]) and np.allclose(
+        straight.direction, [0.0, 0.0, -1.0])
+    rng = np.random.default_rng(13)
+    for _ in range(20):
+        pitch, yaw = rng.uniform(-0.6, 0.6, 2)
+        eyes = rng.normal(size=3)
+        rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        rotation *= np.sign(np.linalg.det(rotation))
+        pose = (rotation, rng.normal(size=3))
+        gaze = lt.gaze_from_pitch_yaw(pitch, yaw, eyes, pose)
+        vector = (-np.cos(pitch) * np.sin(yaw), -np.sin(pitch), -np.cos(pitch) * np.cos(yaw))
+        same = lt.gaze_from_vector(np.array(vector) * 3.0, eyes, pose)
+        assert np.allclose(gaze.direction, same.direction, atol=1e-15)
+        assert np.allclose(gaze.origin, rotation @ eyes + pose[1])
+        camera = rotation.T @ gaze.direction
+        assert np.isclose(np.arcsin(-camera[1]), pitch) and np.isclose(
+            np.arctan2(-camera[0], -camera[2]), yaw)
+    origin, direction = lt.gaze_from_vector((0.0, -1.0, 0.0), (0.0, 0.0, 2.0))
+    assert np.allclose(direction, [0.0, 1.0, 0.0])  # up in the image is up in the map
+    with pytest.raises(ValueError, match="vector must be non-zero"):
+        lt.gaze_from_vector((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+
+
+def test_gaze_objects_checks_its_map():
+    with pytest.raises(ValueError, match="occupancy must be an OccupancyGrid"):
+        lt.gaze_objects(GRID, (0, 0, 0), (0, 0, 1))
+    with pytest.raises(ValueError, match="occupancy must be an OccupancyGrid"):
+        lt.label_objects(None)
