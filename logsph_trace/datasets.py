@@ -19,6 +19,29 @@ MOTORCYCLE_DOFFS = 31.086
 MOTORCYCLE_BASELINE = 0.193001
 
 
+# Four parts of the motorcycle, boxed by hand on the 741 x 500 left image:
+# label -> (name, (first column, end column), (first row, end row)).
+MOTORCYCLE_PARTS = {
+    1: ("front wheel", (470, 640), (270, 440)),
+    2: ("rear wheel", (110, 250), (250, 410)),
+    3: ("fuel tank", (290, 440), (150, 225)),
+    4: ("engine", (300, 420), (240, 340)),
+}
+
+
+def box_labels(shape, boxes):
+    """Paint 2-D boxes into an instance image of ``shape``, as a detector would give it.
+
+    ``boxes``: ``{label: (name, (first column, end column), (first row, end
+    row))}``, painted in order (a later box wins where two overlap); every
+    other pixel is 0, no object.
+    """
+    labels = np.zeros(shape, dtype=np.int32)
+    for label, (_, (c0, c1), (r0, r1)) in boxes.items():
+        labels[r0:r1, c0:c1] = label
+    return labels
+
+
 @dataclass(frozen=True)
 class DepthFrame:
     """A camera image with its depth and intrinsics.
