@@ -27,10 +27,6 @@ bench/results/gpu.json and gpu.md.
 
 import argparse
 import json
-import os
-import subprocess
-import sys
-import tempfile
 import time
 
 import numba
@@ -40,7 +36,7 @@ from numba import cuda
 import logsph_trace as lt
 from bench.cone import GAZE, ORIGIN, fixation_map
 from bench.occupancy import scans
-from bench.workload import make_box, make_grid, make_rays, write_results
+from bench.workload import fresh_processes, make_box, make_grid, make_rays, write_results
 from logsph_trace import _cuda
 from logsph_trace.kernels import cartesian
 
@@ -202,15 +198,10 @@ print(imported - start, time.perf_counter() - imported)
 
 def start_times():
     """(import s, first device call s) in a fresh process: cold cache, then warm."""
-    with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
-        runs = []
-        for _ in range(2):
-            out = subprocess.run([sys.executable, "-c", START], capture_output=True, text=True,
-                                 env=env, check=True).stdout.split()
-            runs.append([float(value) for value in out[-2:]])
-    return {"cold_import_s": runs[0][0], "cold_first_call_s": runs[0][1],
-            "cached_import_s": runs[1][0], "cached_first_call_s": runs[1][1]}
+    (cold_import, cold_call), (warm_import, warm_call) = (run[-2:] for run in
+                                                          fresh_processes(START))
+    return {"cold_import_s": cold_import, "cold_first_call_s": cold_call,
+            "cached_import_s": warm_import, "cached_first_call_s": warm_call}
 
 
 def report(record):

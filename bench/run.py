@@ -16,9 +16,7 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -26,7 +24,7 @@ import numba
 import numpy as np
 
 import logsph_trace as lt
-from bench.workload import make_box, make_grid, make_rays, thread_counts, timed
+from bench.workload import fresh_processes, make_box, make_grid, make_rays, thread_counts, timed
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -45,13 +43,7 @@ print(first, time.perf_counter() - start)
 
 def first_call_times():
     """Import + first trace, in fresh processes: with an empty cache, then with the cache warm."""
-    with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
-        runs = []
-        for _ in range(2):
-            out = subprocess.run([sys.executable, "-c", FIRST_CALL], env=env, check=True,
-                                 capture_output=True, text=True).stdout.split()
-            runs.append([float(v) for v in out])
+    runs = fresh_processes(FIRST_CALL)
     (cold_trace, cold_parallel), (warm_trace, warm_parallel) = runs
     return {
         "cold_import_and_first_trace_s": cold_trace,

@@ -95,6 +95,22 @@ def motorcycle_points(sensor=(0.0, 0.0, 0.0)):
     return lt.depth_to_points(frame.depth, frame.intrinsics, pose).points
 
 
+def fresh_processes(code):
+    """Run ``code`` in two fresh Pythons sharing one new Numba cache: the first
+    finds it empty, the second finds what the first wrote. Returns the
+    numbers each printed last, as two lists of floats."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        return [[float(value) for value in subprocess.run(
+            [sys.executable, "-c", code], env=env, check=True, capture_output=True,
+            text=True).stdout.split()] for _ in range(2)]
+
+
 def write_results(name, argv, text, record):
     """Print ``text`` and write bench/results/<name>.json (``record`` plus the
     command and date) and <name>.md (the command, then ``text``)."""

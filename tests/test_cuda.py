@@ -35,6 +35,15 @@ REPO = TESTS.parent
 GRID = lt.Grid(0.3, 10.0, 12, 24, 12)
 
 
+def _all_equal_on_the_simulator(tmp_path, **arrays):
+    """Save the CPU's answers, check the simulated GPU against them."""
+    path = tmp_path / "cases.npz"
+    np.savez(path, **arrays)
+    result = _simulated([str(path)], tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.strip() == "all equal"
+
+
 def _simulated(args, tmp_path):
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", NUMBA_DISABLE_JIT="1",
                PYTHONPATH=os.pathsep.join([str(TESTS), str(REPO)]))
@@ -46,11 +55,7 @@ def test_simulated_gpu_traces_equal_the_cpu(tmp_path):
     # Every grid kind, random rays (a third cut by t_max) and the near-singular
     # classes on and just off their sets: cells identical, distances within
     # 1e-12 relative.
-    path = tmp_path / "cases.npz"
-    np.savez(path, **cpu_traces(cases(n_random=150, n_singular=10)))
-    result = _simulated([str(path)], tmp_path)
-    assert result.returncode == 0, result.stdout + result.stderr
-    assert result.stdout.strip() == "all equal"
+    _all_equal_on_the_simulator(tmp_path, **cpu_traces(cases(n_random=150, n_singular=10)))
 
 
 def test_simulated_gpu_cones_and_cells_of_points_equal_the_cpu(tmp_path):
@@ -58,21 +63,13 @@ def test_simulated_gpu_cones_and_cells_of_points_equal_the_cpu(tmp_path):
     # centre, across the seam, along y, one ray, random): the same cells in
     # the same order, weights and first reaches within 1e-12 relative. And
     # Grid.cell_of of points on every edge, an ulp either side and random.
-    path = tmp_path / "cones.npz"
-    np.savez(path, **cpu_cones(cone_cases()), **cpu_cells(point_cases()))
-    result = _simulated([str(path)], tmp_path)
-    assert result.returncode == 0, result.stdout + result.stderr
-    assert result.stdout.strip() == "all equal"
+    _all_equal_on_the_simulator(tmp_path, **cpu_cones(cone_cases()), **cpu_cells(point_cases()))
 
 
 def test_simulated_gpu_inputs_are_read_and_checked_on_the_device(tmp_path):
     # Origins, directions and t_max already on the GPU (float64, float32, one
     # (m, 6) array): the CPU's traces; bad rows: the CPU's error messages.
-    path = tmp_path / "inputs.npz"
-    np.savez(path, **cpu_gpu_inputs(gpu_input_cases()))
-    result = _simulated([str(path)], tmp_path)
-    assert result.returncode == 0, result.stdout + result.stderr
-    assert result.stdout.strip() == "all equal"
+    _all_equal_on_the_simulator(tmp_path, **cpu_gpu_inputs(gpu_input_cases()))
 
 
 def test_simulated_gpu_map_equals_the_cpu(tmp_path):
@@ -80,11 +77,7 @@ def test_simulated_gpu_map_equals_the_cpu(tmp_path):
     # off, from the gap and from inside the region, every other one cut at a
     # max_range, a third of the points on spheres -- then decay, fixation and
     # gaze targets: the maps identical after every step.
-    path = tmp_path / "maps.npz"
-    np.savez(path, **cpu_maps(map_cases()))
-    result = _simulated([str(path)], tmp_path)
-    assert result.returncode == 0, result.stdout + result.stderr
-    assert result.stdout.strip() == "all equal"
+    _all_equal_on_the_simulator(tmp_path, **cpu_maps(map_cases()))
 
 
 @pytest.mark.parametrize("limits", [["7"], ["7", "tiny"]])

@@ -37,6 +37,18 @@ def _axis_start(origin, direction, t_start, low, size, n):
     return index, 0, np.inf, np.inf
 
 
+@jit(inline="always")
+def _box_span_of(origins, directions, row, low, size, shape):
+    """Ray ``row``'s origin and direction, and the t interval it spends in the box."""
+    ox, oy, oz = origins[row, 0], origins[row, 1], origins[row, 2]
+    dx, dy, dz = directions[row, 0], directions[row, 1], directions[row, 2]
+    near_x, far_x = _slab(ox, dx, low[0], low[0] + shape[0] * size[0])
+    near_y, far_y = _slab(oy, dy, low[1], low[1] + shape[1] * size[1])
+    near_z, far_z = _slab(oz, dz, low[2], low[2] + shape[2] * size[2])
+    return (ox, oy, oz, dx, dy, dz, max(0.0, near_x, near_y, near_z),
+            min(far_x, far_y, far_z))
+
+
 @jit
 def trace_box_ray(origins, directions, row, low, size, shape, cells, t_enter, t_exit, start):
     """Trace ray ``row`` (unit direction) through the box, writing its voxels from
@@ -45,13 +57,8 @@ def trace_box_ray(origins, directions, row, low, size, shape, cells, t_enter, t_
     The loop moves one index by one each time and stops when any index leaves
     its range, so it runs at most ``shape[0] + shape[1] + shape[2]`` times.
     """
-    ox, oy, oz = origins[row, 0], origins[row, 1], origins[row, 2]
-    dx, dy, dz = directions[row, 0], directions[row, 1], directions[row, 2]
-    near_x, far_x = _slab(ox, dx, low[0], low[0] + shape[0] * size[0])
-    near_y, far_y = _slab(oy, dy, low[1], low[1] + shape[1] * size[1])
-    near_z, far_z = _slab(oz, dz, low[2], low[2] + shape[2] * size[2])
-    t_now = max(0.0, near_x, near_y, near_z)
-    t_out = min(far_x, far_y, far_z)
+    ox, oy, oz, dx, dy, dz, t_now, t_out = _box_span_of(origins, directions, row, low, size,
+                                                        shape)
     if not t_now < t_out:
         return 0
     ix, step_x, next_x, delta_x = _axis_start(ox, dx, t_now, low[0], size[0], shape[0])
@@ -98,13 +105,8 @@ def box_bound(origins, directions, row, low, size, shape):
     ``bench.gpu`` sizes each ray's region with it, as the exact kernel's
     ``BOUND`` mode does.
     """
-    ox, oy, oz = origins[row, 0], origins[row, 1], origins[row, 2]
-    dx, dy, dz = directions[row, 0], directions[row, 1], directions[row, 2]
-    near_x, far_x = _slab(ox, dx, low[0], low[0] + shape[0] * size[0])
-    near_y, far_y = _slab(oy, dy, low[1], low[1] + shape[1] * size[1])
-    near_z, far_z = _slab(oz, dz, low[2], low[2] + shape[2] * size[2])
-    t_in = max(0.0, near_x, near_y, near_z)
-    t_out = min(far_x, far_y, far_z)
+    ox, oy, oz, dx, dy, dz, t_in, t_out = _box_span_of(origins, directions, row, low, size,
+                                                       shape)
     if not t_in < t_out:
         return 0
     steps = (1 + _axis_steps(ox, dx, t_in, t_out, low[0], size[0], shape[0])
