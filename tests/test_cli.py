@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -119,6 +120,16 @@ def test_demo_writes_its_figures(tmp_path):
     assert "the first occupied cell on the gaze is on the object: True" in result.stdout
     for name in ("fig3_worked_example.png", "fig5_gaze_on_object.png"):
         assert (tmp_path / "out" / name).stat().st_size > 10_000
+
+
+def test_real_demo_names_each_part_it_looks_at(tmp_path):
+    pytest.importorskip("skimage")
+    result = run("demo", "--real", "--out", str(tmp_path / "out"))
+    assert result.returncode == 0, result.stderr
+    assert "343,274 pixels with depth, 27,226 without (skipped)" in result.stdout
+    for part in ("front wheel", "rear wheel", "fuel tank", "engine"):
+        assert re.search(rf"^ +{part} +{part} +0\.\d+ +\d", result.stdout, re.M), result.stdout
+    assert (tmp_path / "out" / "motorcycle_gaze.png").stat().st_size > 10_000
 
 
 def test_bench_quick_writes_the_timing_study(tmp_path):
