@@ -9,9 +9,10 @@ import pytest
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
 
 
-def test_there_are_three_notebooks():
+def test_there_are_four_notebooks():
     assert [path.name for path in NOTEBOOKS] == [
         "01_gaze_tracing.ipynb", "02_cones_and_occupancy.ipynb", "03_performance.ipynb",
+        "04_real_data_and_objects.ipynb",
     ]
 
 
