@@ -194,12 +194,11 @@ class OccupancyGrid:
         """
         start = time.perf_counter()
         validate.choice("invalid", invalid, ("raise", "skip"))
+        rows = np.shape(points)[0] if np.ndim(points) == 2 else 1  # labels must match these
         if invalid == "skip":
-            rows = np.shape(points)[0] if np.ndim(points) == 2 else 1
             points, keep = validate.finite_rows("points", points)
             skipped = 0 if keep is None else int(keep.size - points.shape[0])
         else:
-            rows = np.shape(points)[0] if np.ndim(points) == 2 else 1
             points, keep, skipped = validate.vectors("points", points), None, 0
         if labels is not None:
             labels = validate.labels("labels", labels, (rows,))
