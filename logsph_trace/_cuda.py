@@ -363,7 +363,8 @@ def _gpu_array(name, value, columns):
             array = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError):
             raise ValueError(f"{name} must be numeric, got {value!r}") from None
-        array = cuda.to_device(np.ascontiguousarray(np.atleast_2d(array)))
+        array = cuda.to_device(np.ascontiguousarray(array if columns is None
+                                                    else np.atleast_2d(array)))
     wanted = "(m,)" if columns is None else f"(m, {columns})"
     if (array.ndim != 1) if columns is None else (array.ndim != 2 or array.shape[1] != columns):
         raise ValueError(f"{name} must have shape {wanted}, got {tuple(array.shape)}")
@@ -408,20 +409,22 @@ def trace_gpu_inputs(grid, origins, directions, t_max):
     if n:
         _launch(_check_rays_kernel, n, origins, directions, d_t_max, unit, bad)
     rows = _first_bad(bad)
-    problems = (
-        ("origins", origins, "must be finite; row {row} is {value}"),
-        ("origins", origins, "must be shorter than about 1e154 (its square must be finite); "
-                             "row {row} is {value}"),
-        ("directions", directions, "must be finite; row {row} is {value}"),
-        ("directions", directions, "must be non-zero; row {row} is {value}"),
-        ("t_max", d_t_max, "must be >= 0 (inf allowed); row {row} is {value}"),
+    problems = (  # in the order the host checks them
+        ("origins", origins, validate.NOT_FINITE), ("origins", origins, validate.TOO_LONG),
+        ("directions", directions, validate.NOT_FINITE), ("directions", directions, validate.ZERO),
+        ("t_max", d_t_max, validate.NEGATIVE),
     )
     for row, (name, array, message) in zip(rows, problems):
         if row >= 0:
-            value = array[row:row + 1].copy_to_host()[0]
-            value = float(value) if np.ndim(value) == 0 else value.tolist()
-            raise ValueError(f"{name} " + message.format(row=row, value=value))
+            _bad_row(name, array, row, message)
     return _trace(grid, origins, unit, d_t_max)
+
+
+def _bad_row(name, array, row, message):
+    """Raise ``message`` about row ``row`` of the device array ``array``, as the host would."""
+    value = array[row:row + 1].copy_to_host()[0]
+    value = float(value) if np.ndim(value) == 0 else value.tolist()
+    raise ValueError(message.format(name=name, row=row, value=value))
 
 
 def cells_of_gpu_points(grid, points):
@@ -433,12 +436,8 @@ def cells_of_gpu_points(grid, points):
         _launch(_check_points_kernel, points.shape[0], points, bad)
     row = _first_bad(bad)[0]
     if row >= 0:
-        raise ValueError(f"points must be finite; row {row} is "
-                         f"{points[row:row + 1].copy_to_host()[0].tolist()}")
-    out = cuda.device_array((points.shape[0], 3), dtype=np.int32)
-    if points.shape[0]:
-        _launch(_cells_of_kernel, points.shape[0], points, _device_grid(grid), out)
-    return out
+        _bad_row("points", points, row, validate.NOT_FINITE)
+    return _cells_on_device(grid, points)
 
 
 # ---- points ---------------------------------------------------------------------------------
@@ -456,9 +455,14 @@ def _cells_of_kernel(points, grid, out):
 def cells_of(grid, points):
     """Look up checked points (C-contiguous (M, 3) float64): a device array (M, 3) int32."""
     require()
+    return _cells_on_device(grid, cuda.to_device(points))
+
+
+def _cells_on_device(grid, points):
+    """Look up checked points already on the device: a device array (M, 3) int32."""
     out = cuda.device_array((points.shape[0], 3), dtype=np.int32)
     if points.shape[0]:
-        _launch(_cells_of_kernel, points.shape[0], cuda.to_device(points), _device_grid(grid), out)
+        _launch(_cells_of_kernel, points.shape[0], points, _device_grid(grid), out)
     return out
 
 
@@ -606,11 +610,9 @@ def aggregate_cones(grid, origins, directions, ray_weights, counts, j_shifts, fi
     in_flight = max(1, min(RAYS_IN_FLIGHT, n_rays, share // (4 * words)))
     seen = cuda.device_array((words, in_flight), dtype=np.uint32)
     d_weights = cuda.to_device(np.ascontiguousarray(ray_weights, dtype=np.float64))
-    if fixation is None:
-        fixation = (cuda.device_array(1, dtype=np.float32), 0.0, 0.0, 0.0)
-        weigh = (False, *fixation)
-    else:
-        weigh = (True, *fixation)
+    # The kernel's fixation switch and its map: a stand-in one when only weights are summed.
+    weigh = ((False, cuda.device_array(1, dtype=np.float32), 0.0, 0.0, 0.0) if fixation is None
+             else (True, *fixation))
     for first_ray in range(0, n_rays, in_flight):
         _launch(_weigh_kernel, in_flight, first_ray, traces.offsets, traces.cells,
                 traces.t_enter, traces.t_exit, d_ray_cone, d_weights, d_j_shifts, n_theta,

@@ -111,7 +111,7 @@ def points(name, points):
         raise ValueError(f"{name} must have shape (M, 3) or (3,), got {np.shape(points)}")
     if not np.all(np.isfinite(array)):
         row = int(np.argmax(~np.all(np.isfinite(array), axis=1)))
-        raise ValueError(f"{name} must be finite; row {row} is {array[row].tolist()}")
+        raise ValueError(NOT_FINITE.format(name=name, row=row, value=array[row].tolist()))
     return np.ascontiguousarray(array), single
 
 
@@ -129,6 +129,13 @@ def choice(name, value, options):
         raise ValueError(f"{name} must be one of {options}, got {value!r}")
     return value
 
+
+# How a bad row is reported, worded once for the checks on the host and on the GPU.
+NOT_FINITE = "{name} must be finite; row {row} is {value}"
+TOO_LONG = ("{name} must be shorter than about 1e154 (its square must be finite); "
+            "row {row} is {value}")
+ZERO = "{name} must be non-zero; row {row} is {value}"
+NEGATIVE = "{name} must be >= 0 (inf allowed); row {row} is {value}"
 
 DEVICES = ("cpu", "cuda")
 
@@ -177,7 +184,7 @@ def vectors(name, value, rows=None):
     array = _rows_of_three(name, value, rows)
     if not np.isfinite(array).all():  # one flat pass; a reduction per row costs 30x more
         row = int(np.argmin(np.all(np.isfinite(array), axis=1)))
-        raise ValueError(f"{name} must be finite; row {row} is {array[row].tolist()}")
+        raise ValueError(NOT_FINITE.format(name=name, row=row, value=array[row].tolist()))
     return np.ascontiguousarray(array)
 
 
@@ -222,7 +229,7 @@ def unit_directions(directions, name="directions"):
     norms = row_norms(directions)
     if np.any(norms == 0.0):
         row = int(np.argmin(norms))
-        raise ValueError(f"{name} must be non-zero; row {row} is {directions[row].tolist()}")
+        raise ValueError(ZERO.format(name=name, row=row, value=directions[row].tolist()))
     return np.ascontiguousarray(directions / norms[:, None])
 
 
@@ -231,8 +238,7 @@ def origin_size(name, origins):
     squares = np.einsum("ij,ij->i", origins, origins)
     if not np.all(np.isfinite(squares)):
         row = int(np.argmin(np.isfinite(squares)))
-        raise ValueError(f"{name} must be shorter than about 1e154 (its square must be "
-                         f"finite); row {row} is {origins[row].tolist()}")
+        raise ValueError(TOO_LONG.format(name=name, row=row, value=origins[row].tolist()))
     return origins
 
 
@@ -264,7 +270,7 @@ def distances(t_max, n_rays):
         raise ValueError(f"t_max must be a number or have shape ({n_rays},), got {array.shape}")
     if np.any(np.isnan(array)) or np.any(array < 0):
         bad = int(np.argmax(np.isnan(array) | (array < 0)))
-        raise ValueError(f"t_max must be >= 0 (inf allowed); row {bad} is {float(array[bad])!r}")
+        raise ValueError(NEGATIVE.format(name="t_max", row=bad, value=float(array[bad])))
     return np.ascontiguousarray(array)
 
 

@@ -18,7 +18,6 @@ METHODS = ("exact", "bisect", "thibaudeau")
 PAPER_DEFAULT_T = 1.5531  # metres: the step the paper tuned for Algorithm 1 (section 3.2)
 
 
-
 def trace_many(grid, origins, directions=None, method="exact", parallel=True,
                default_t=PAPER_DEFAULT_T, max_iter=None, t_max=None, out=None, device="cpu"):
     """Trace many rays through ``grid``.
