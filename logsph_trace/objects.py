@@ -16,7 +16,8 @@ import numpy as np
 
 from . import _validate as validate
 from .kernels import objects as _kernels
-from .occupancy import OccupancyGrid, _logit, fixation_probability
+from .occupancy import _check_occupancy as _check
+from .occupancy import fixation_probability
 
 
 def label_objects(occupancy, threshold=0.6):
@@ -34,8 +35,8 @@ def label_objects(occupancy, threshold=0.6):
         The number of objects.
     """
     _check(occupancy)
-    threshold = validate.probability("threshold", threshold)
-    occupied = occupancy.to_host().log_odds > _logit(threshold)
+    occupied = np.zeros(occupancy.grid.shape, dtype=bool)
+    occupied[tuple(occupancy.occupied(threshold).T)] = True
     labels = np.zeros(occupancy.grid.shape, dtype=np.int32)
     count = _kernels.components(occupied, occupancy.grid.theta_full, labels)
     occupancy.labels = labels
@@ -175,8 +176,3 @@ class GazeAccumulator:
         """The object held highest, or 0 before any gaze reached one."""
         labels, _ = self.scores()
         return int(labels[0]) if labels.size else 0
-
-
-def _check(occupancy):
-    if not isinstance(occupancy, OccupancyGrid):
-        raise ValueError(f"occupancy must be an OccupancyGrid, got {type(occupancy).__name__}")

@@ -57,7 +57,7 @@ def _left_within_snap(t_now, t_next, snap, t_closest, h2, i, rho_sq):
 
 @jit
 def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zones, lookups,
-              free):
+             free):
     """Flag the cells one sensor ray (unit direction) crosses up to ``t_max`` in
     ``free`` (indexed column-major, see ``apply_scan``); return the index of its
     end cell when it is a hit that ends inside the region, else -1.
