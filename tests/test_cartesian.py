@@ -66,3 +66,26 @@ def test_parallel_waves_equal_the_serial_pass(monkeypatch, wave_segments):
         for name in ("offsets", "cells", "t_enter", "t_exit"):
             np.testing.assert_array_equal(getattr(result, name), getattr(serial, name))
             assert getattr(result, name).base is None
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 1), (7, 8, 9), (32, 32, 32)])
+def test_the_box_bound_is_never_below_the_voxels_a_ray_crosses(shape):
+    # bench.gpu sizes each ray's region with it: too small would overwrite the
+    # next ray. Random rays, axis-parallel ones, and ones from voxel corners.
+    box = CartesianGrid((-3.0, -2.0, -1.0), (3.0, 2.5, 4.0), shape)
+    rng = np.random.default_rng(len(shape) + shape[0])
+    origins = rng.uniform(-6, 6, (3000, 3))
+    directions = rng.normal(size=(3000, 3))
+    directions[:300, 1:] = 0.0
+    directions[300:600] = np.eye(3)[rng.integers(0, 3, 300)] * rng.choice([-1.0, 1.0], (300, 1))
+    origins[600:900] = np.round(origins[600:900] * 2.0) / 2.0
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    counts = np.diff(box.trace_many(origins, directions, parallel=False).offsets)
+    low = np.asarray(box.low, dtype=np.float64)
+    size = np.asarray(box.voxel_size, dtype=np.float64)
+    bounds = np.array([_kernels.box_bound(origins, directions, row, low, size,
+                                          np.asarray(shape, dtype=np.int64))
+                       for row in range(origins.shape[0])])
+    assert np.all(bounds >= counts)
+    assert np.all(bounds <= sum(shape))
+    assert np.mean(bounds - counts) < 1.0  # tight: regions barely bigger than the output
