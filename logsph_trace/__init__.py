@@ -9,7 +9,7 @@ from importlib import metadata as _metadata
 from ._validate import AngleUnitWarning
 from .cone import ConeTrace, trace_cone, trace_cones
 from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
-from .objects import GazeAccumulator, GazeObjects, gaze_objects, label_objects
+from .objects import GazeAccumulator, GazeObjects, Plane, fit_plane, gaze_objects, label_objects
 from .occupancy import GazeTargets, OccupancyGrid, ScanStats, fixation_probability, gaze_targets
 from .sensor import DepthPoints, Gaze, depth_to_points, gaze_from_pitch_yaw, gaze_from_vector
 from .trace import METHODS, trace, trace_many
@@ -26,12 +26,14 @@ __all__ = [
     "Grid",
     "METHODS",
     "OccupancyGrid",
+    "Plane",
     "ScanStats",
     "Trace",
     "TraceBuffers",
     "Traces",
     "cartesian_to_spherical",
     "depth_to_points",
+    "fit_plane",
     "fixation_probability",
     "from_ros",
     "gaze_from_pitch_yaw",

@@ -363,7 +363,7 @@ REAL_EYES = (-1.5, 0.3, 0.5)  # a person 1.5 m to the camera's left, metres
 
 def _real_demo(out):
     """Integrate the Motorcycle frame with its parts boxed, gaze at each part."""
-    from . import Grid, OccupancyGrid, depth_to_points, gaze_objects, label_objects
+    from . import Grid, OccupancyGrid, depth_to_points, fit_plane, gaze_objects, label_objects
 
     try:
         from . import datasets
@@ -394,10 +394,22 @@ def _real_demo(out):
         distance = objects.first_distances[0] if len(objects) else np.nan
         print(f"  {name:>12} {named:>12} {probability:12.3f} {distance:15.2f}")
         gazes.append((label, target, objects.top))
+    # Without boxes: connected groups of occupied cells, leaving out the
+    # floor (which every object touches) and cells with under 3 points.
     components = OccupancyGrid(grid).integrate_depth(frame.depth, frame.intrinsics)
-    count = label_objects(components)
-    print(f"Without boxes, label_objects finds {count} connected groups of occupied cells; "
-          "the motorcycle touches the floor and the wall, so one group holds nearly all.")
+    floor = fit_plane(scan.points, tolerance=0.03)
+    exclude = grid.count_points(scan.points[floor.inliers]) > 0
+    exclude |= grid.count_points(scan.points) < 3
+    count = label_objects(components, exclude=exclude)
+    print(f"Without boxes: label_objects finds {count} objects, leaving out the floor (fitted "
+          f"{floor.offset:.2f} m below the camera) and cells with under 3 points.")
+    point_labels = components.labels[tuple(grid.cell_of(scan.points).T)]
+    tops = [gaze_objects(components, eyes, target - eyes).top for _, target, _ in gazes]
+    for label in dict.fromkeys(tops):
+        mine = point_labels == label
+        distance = np.median(np.linalg.norm(scan.points[mine], axis=1)) if label else np.nan
+        print(f"  {tops.count(label)} of the {len(tops)} gazes name object {label}: "
+              f"{np.count_nonzero(mine):,} points, median {distance:.2f} m away")
     path = out / "motorcycle_gaze.png"
     _real_figure(frame, labels, parts, grid, bvm, scan, eyes, gazes, path)
     print(f"figure written to {path} in {time.perf_counter() - start:.1f} s")

@@ -309,6 +309,18 @@ class Grid:
             cells = _locate.cells_of_points(array, self.kernel_args())
         return cells[0] if single else cells
 
+    def count_points(self, points):
+        """How many of ``points`` lie in each cell: int64, shape ``self.shape``.
+
+        Points outside the region are not counted. With a scan's points this
+        is each cell's support, e.g. to leave cells with few returns out of
+        :func:`~logsph_trace.label_objects`.
+        """
+        cells = np.atleast_2d(self.cell_of(points))
+        inside = cells[cells[:, 0] >= 0]
+        flat = np.ravel_multi_index(tuple(inside.T), self.shape)
+        return np.bincount(flat, minlength=int(np.prod(self.shape))).reshape(self.shape)
+
     def contains(self, points):
         """Boolean mask: which points lie inside the region."""
         cells = self.cell_of(points)

@@ -11,6 +11,7 @@ a held look beats a glance.
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -20,14 +21,32 @@ from .occupancy import _check_occupancy as _check
 from .occupancy import fixation_probability
 
 
-def label_objects(occupancy, threshold=0.6):
+def label_objects(occupancy, threshold=0.6, exclude=None, min_cells=1):
     """Label the connected groups of occupied cells as objects, in ``occupancy.labels``.
 
     Cells above ``threshold`` are occupied; two are connected when each of
     their indices differs by at most one (the 26-neighbourhood of index
     space), across the theta seam when the grid's azimuth is a full circle.
-    Components are numbered 1, 2, ... in the map's C order; every other
-    cell gets 0. The labels replace any the map had.
+    Components are numbered 1, 2, ... in the map's C order of their first
+    cell; every other cell gets 0. The labels replace any the map had.
+
+    Objects that stand on a floor touch it, and so each other: leave the
+    floor out with ``exclude`` (:func:`fit_plane` finds it, and
+    :meth:`Grid.count_points` puts its points in cells). A depth camera's
+    pixels on a silhouette often fall between the object and what lies
+    behind it, a few to a cell, and can chain the two together: leaving out
+    cells that hold only a few points of a scan breaks such chains (see the
+    README's motorcycle example).
+
+    Parameters
+    ----------
+    occupancy : OccupancyGrid
+    threshold : float
+        Probability above which a cell is occupied.
+    exclude : array_like of bool, shape ``grid.shape``, optional
+        Cells that belong to no object and connect none, occupied or not.
+    min_cells : int
+        Components with fewer cells are left unlabelled (0), as noise.
 
     Returns
     -------
@@ -35,12 +54,109 @@ def label_objects(occupancy, threshold=0.6):
         The number of objects.
     """
     _check(occupancy)
-    occupied = np.zeros(occupancy.grid.shape, dtype=bool)
+    min_cells = validate.count("min_cells", min_cells)
+    grid = occupancy.grid
+    occupied = np.zeros(grid.shape, dtype=bool)
     occupied[tuple(occupancy.occupied(threshold).T)] = True
-    labels = np.zeros(occupancy.grid.shape, dtype=np.int32)
-    count = _kernels.components(occupied, occupancy.grid.theta_full, labels)
+    if exclude is not None:
+        mask = np.asarray(exclude)
+        if mask.shape != grid.shape or mask.dtype != np.bool_:
+            raise ValueError(f"exclude must be a boolean array of shape {grid.shape}, got "
+                             f"{mask.dtype} of shape {mask.shape}")
+        occupied &= ~mask
+    labels = np.zeros(grid.shape, dtype=np.int32)
+    count = int(_kernels.components(occupied, grid.theta_full, labels))
+    if min_cells > 1 and count:
+        kept = np.bincount(labels.ravel(), minlength=count + 1) >= min_cells
+        kept[0] = False
+        renumber = np.where(kept, np.cumsum(kept), 0).astype(np.int32)
+        labels = renumber[labels]
+        count = int(kept.sum())
     occupancy.labels = labels
-    return int(count)
+    return count
+
+
+class Plane(NamedTuple):
+    """A plane ``normal . p + offset = 0`` (unit ``normal``) and the points on it."""
+
+    normal: np.ndarray
+    offset: float
+    inliers: np.ndarray  # bool, one per point given to fit_plane
+
+    def distance(self, points):
+        """Signed distance of each point from the plane (positive on the normal's side)."""
+        array, single = validate.points("points", points)
+        distances = array @ self.normal + self.offset
+        return distances[0] if single else distances
+
+
+# RANSAC scores its candidate planes on this many points; the best is then
+# refitted to all of them.
+_SCORED_POINTS = 20_000
+
+
+def fit_plane(points, tolerance=0.02, iterations=200, seed=0):
+    """Find the plane that most points lie on (RANSAC): the floor under a scene.
+
+    Each of ``iterations`` candidates is the plane through three random
+    points, scored by how many of (at most 20,000 of) the points lie within
+    ``tolerance`` of it. The best is refitted by least squares to its
+    inliers among all the points, which are then counted again. A fixed
+    ``seed`` gives the same plane every time.
+
+    Parameters
+    ----------
+    points : array_like, shape (M, 3)
+        Finite points, e.g. ``depth_to_points(...).points``; M >= 3.
+    tolerance : float
+        How far from the plane a point may lie and still be on it (metres).
+    iterations : int
+        Candidate planes to try.
+    seed : int
+        Seed of the random choice of candidates.
+
+    Returns
+    -------
+    Plane
+        Its normal points to the side the map's origin is on (a floor's
+        points up, towards a sensor above it), so the origin's distance
+        ``offset`` is positive; ``inliers`` marks the points within
+        ``tolerance``.
+    """
+    array, _ = validate.points("points", points)
+    tolerance = validate.finite("tolerance", tolerance)
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be a positive number, got {tolerance!r}")
+    iterations = validate.count("iterations", iterations)
+    if array.shape[0] < 3:
+        raise ValueError(f"points must hold at least 3 points to fit a plane, got "
+                         f"{array.shape[0]}")
+    rng = np.random.default_rng(seed)
+    scored = array
+    if array.shape[0] > _SCORED_POINTS:
+        scored = array[rng.choice(array.shape[0], _SCORED_POINTS, replace=False)]
+    best_count, best = 0, None
+    for _ in range(iterations):
+        a, b, c = scored[rng.choice(scored.shape[0], 3, replace=False)]
+        normal = np.cross(b - a, c - a)
+        length = np.linalg.norm(normal)
+        if not length > 0:
+            continue  # three points on a line: no plane
+        normal /= length
+        count = np.count_nonzero(np.abs(scored @ normal - normal @ a) <= tolerance)
+        if count > best_count:
+            best_count, best = count, (normal, -(normal @ a))
+    if best is None:
+        raise ValueError("points lie on one line (or one point): they span no plane")
+    normal, offset = best
+    inliers = np.abs(array @ normal + offset) <= tolerance
+    # Least squares: the normal is the direction in which the inliers spread least.
+    centre = array[inliers].mean(axis=0)
+    normal = np.linalg.svd(array[inliers] - centre, full_matrices=False)[2][2]
+    offset = -float(normal @ centre)
+    if offset < 0:
+        normal, offset = -normal, -offset
+    return Plane(normal, offset, np.abs(array @ normal + offset) <= tolerance)
 
 
 @dataclass(frozen=True)

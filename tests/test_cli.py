@@ -129,6 +129,7 @@ def test_real_demo_names_each_part_it_looks_at(tmp_path):
     assert "343,274 pixels with depth, 27,226 without (skipped)" in result.stdout
     for part in ("front wheel", "rear wheel", "fuel tank", "engine"):
         assert re.search(rf"^ +{part} +{part} +0\.\d+ +\d", result.stdout, re.M), result.stdout
+    assert "4 of the 4 gazes name object" in result.stdout  # without boxes: the bike, whole
     assert (tmp_path / "out" / "motorcycle_gaze.png").stat().st_size > 10_000
 
 

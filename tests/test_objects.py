@@ -214,6 +214,101 @@ def test_gazes_from_estimators():
         lt.gaze_from_vector((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
 
 
+def _floor_scene():
+    # A box standing on a floor: touching, they are one connected group.
+    floor = Box("floor", (-4.0, -1.25, 0.5), (4.0, -1.2, 6.0))
+    box = Box("box", (-0.4, -1.2, 2.2), (0.4, -0.4, 2.6))
+    points, labels, _ = Scene([floor, box]).depth_points(forward=(0.0, -0.3, 1.0))
+    return points, labels
+
+
+def test_leaving_out_the_floor_separates_what_stands_on_it():
+    points, labels = _floor_scene()
+    occupancy = lt.OccupancyGrid(GRID).integrate(points, (0.0, 0.0, 0.0))
+    assert lt.label_objects(occupancy) == 1
+    floor = lt.fit_plane(points, tolerance=0.01)
+    assert np.allclose(floor.normal, [0.0, 1.0, 0.0], atol=1e-4)  # up, to the sensor
+    assert np.isclose(floor.offset, 1.2, atol=1e-4)
+    assert floor.inliers[labels == 0].all() and not floor.inliers[points[:, 1] > -1.18].any()
+    exclude = GRID.count_points(points[floor.inliers]) > 0
+    assert lt.label_objects(occupancy, exclude=exclude) == 1
+    box = occupancy.labels[tuple(GRID.cell_of(points[labels == 1]).T)]
+    on_floor = occupancy.labels[tuple(GRID.cell_of(points[labels == 0]).T)]
+    assert np.mean(box == 1) > 0.9 and not np.any(on_floor)
+    assert not np.any(occupancy.labels[exclude])
+    eyes = np.array([1.0, 0.3, 0.5])
+    assert lt.gaze_objects(occupancy, eyes, np.array([0.0, -0.8, 2.3]) - eyes).top == 1
+
+
+def test_fit_plane_finds_a_noisy_plane_among_outliers():
+    rng = np.random.default_rng(5)
+    normal = rng.normal(size=3)
+    normal /= np.linalg.norm(normal)
+    basis = np.linalg.svd(normal[None, :])[2][1:]
+    on = rng.uniform(-3, 3, (30_000, 2)) @ basis - 1.7 * normal  # offset 1.7: origin above
+    on += rng.normal(scale=0.002, size=on.shape) * normal
+    off = rng.uniform(-3, 3, (20_000, 3))
+    points = np.concatenate([on, off])
+    plane = lt.fit_plane(points, tolerance=0.01)
+    assert abs(plane.normal @ normal) > 1 - 1e-6 and plane.normal @ normal > 0
+    assert np.isclose(plane.offset, 1.7, atol=1e-3)
+    assert plane.inliers[:30_000].mean() > 0.99
+    far = np.abs(off @ plane.normal + plane.offset) > 0.011
+    assert not plane.inliers[30_000:][far].any()
+    assert np.allclose(plane.distance(points), points @ plane.normal + plane.offset)
+    again = lt.fit_plane(points, tolerance=0.01)  # the same seed, the same plane
+    assert np.array_equal(again.normal, plane.normal) and again.offset == plane.offset
+
+
+def test_fit_plane_and_label_objects_reject_bad_input():
+    with pytest.raises(ValueError, match="at least 3 points"):
+        lt.fit_plane(np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="span no plane"):
+        lt.fit_plane(np.outer(np.arange(10.0), [1.0, 2.0, 3.0]))
+    with pytest.raises(ValueError, match="tolerance must be a positive number"):
+        lt.fit_plane(np.eye(3), tolerance=0.0)
+    with pytest.raises(ValueError, match="iterations must be a positive integer"):
+        lt.fit_plane(np.eye(3), iterations=0)
+    with pytest.raises(ValueError, match="points must be finite"):
+        lt.fit_plane([[0.0, 0.0, np.nan], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    occupancy = lt.OccupancyGrid(GRID)
+    with pytest.raises(ValueError, match="exclude must be a boolean array of shape"):
+        lt.label_objects(occupancy, exclude=np.zeros(GRID.shape, dtype=int))
+    with pytest.raises(ValueError, match="exclude must be a boolean array of shape"):
+        lt.label_objects(occupancy, exclude=np.zeros((2, 2), dtype=bool))
+    with pytest.raises(ValueError, match="min_cells must be a positive integer"):
+        lt.label_objects(occupancy, min_cells=0)
+
+
+def test_small_components_are_dropped_and_the_rest_renumbered():
+    grid = lt.Grid(0.3, 10.0, 7, 9, 6, theta_range=(-2.0, 2.5))
+    rng = np.random.default_rng(13)
+    occupied = rng.random(grid.shape) < 0.15
+    occupancy = lt.OccupancyGrid(grid, log_odds=np.where(occupied, 2.0, -1.0))
+    want, want_count = _components(occupied, wrap=False)
+    sizes = np.bincount(want.ravel())[1:]
+    assert sizes.min() < 3 <= sizes.max()
+    count = lt.label_objects(occupancy, min_cells=3)
+    assert count == np.count_nonzero(sizes >= 3)
+    # The kept components keep their cells and order; the small ones are 0.
+    kept = np.flatnonzero(sizes >= 3) + 1
+    renumber = np.zeros(want_count + 1, dtype=int)
+    renumber[kept] = np.arange(1, count + 1)
+    assert np.array_equal(occupancy.labels, renumber[want])
+
+
+def test_count_points_counts_each_cells_points():
+    rng = np.random.default_rng(14)
+    points = rng.uniform(-12, 12, (5_000, 3))
+    counts = GRID.count_points(points)
+    cells = GRID.cell_of(points)
+    inside = cells[:, 0] >= 0
+    assert counts.shape == GRID.shape and counts.sum() == inside.sum() < len(points)
+    for cell in cells[inside][:50]:
+        assert counts[tuple(cell)] == np.all(cells == cell, axis=1).sum()
+    assert GRID.count_points(points[0]).sum() == inside[0]
+
+
 def test_gaze_objects_checks_its_map():
     with pytest.raises(ValueError, match="occupancy must be an OccupancyGrid"):
         lt.gaze_objects(GRID, (0, 0, 0), (0, 0, 1))
@@ -239,3 +334,37 @@ def test_gazes_at_four_parts_of_the_real_motorcycle():
     for label in datasets.MOTORCYCLE_PARTS:
         target = np.median(scan.points[of_points == label], axis=0)
         assert lt.gaze_objects(occupancy, eyes, target - eyes).top == label
+
+
+def test_without_boxes_the_motorcycle_is_its_own_object():
+    # No detector: the floor (fit_plane) and cells with fewer than 3 points
+    # (pixels on silhouettes, between the bike and the shelves behind it)
+    # are left out; the bike is then one object apart from the background,
+    # and the gazes at its four parts all name it.
+    pytest.importorskip("skimage")
+    from logsph_trace import datasets
+
+    frame = datasets.motorcycle()
+    grid = lt.Grid(0.3, 8.0, 64, 360, 180)
+    occupancy = lt.OccupancyGrid(grid).integrate_depth(frame.depth, frame.intrinsics)
+    scan = lt.depth_to_points(frame.depth, frame.intrinsics)
+    assert lt.label_objects(occupancy) < 20  # without: one group holds nearly everything
+    everything = np.bincount(occupancy.labels[tuple(grid.cell_of(scan.points).T)])
+    assert everything.max() > 0.99 * len(scan.points)
+    floor = lt.fit_plane(scan.points, tolerance=0.03)
+    assert floor.normal[1] > 0.95 and 1.0 < floor.offset < 1.2  # ~1.1 m below the camera
+    exclude = grid.count_points(scan.points[floor.inliers]) > 0
+    exclude |= grid.count_points(scan.points) < 3
+    lt.label_objects(occupancy, exclude=exclude)
+    labels = occupancy.labels[tuple(grid.cell_of(scan.points).T)]
+    parts = datasets.box_labels(frame.depth.shape, datasets.MOTORCYCLE_PARTS)
+    of_points = parts[scan.pixels[:, 0], scan.pixels[:, 1]]
+    distance = np.linalg.norm(scan.points, axis=1)
+    on_bike = (of_points > 0) & (distance < 2.8)  # the boxes also hold the wall behind
+    bike = np.bincount(labels[on_bike]).argmax()
+    assert bike > 0 and np.mean(labels[on_bike] == bike) > 0.85
+    assert np.mean(labels[distance > 3.3] == bike) < 1e-3  # shelves, bench and wall apart
+    eyes = np.array([-1.5, 0.3, 0.5])
+    for label in datasets.MOTORCYCLE_PARTS:
+        target = np.median(scan.points[of_points == label], axis=0)
+        assert lt.gaze_objects(occupancy, eyes, target - eyes).top == bike
