@@ -120,7 +120,7 @@ def fit_plane(points, tolerance=0.02, iterations=200, seed=0):
     Plane
         Its normal points to the side the map's origin is on (a floor's
         points up, towards a sensor above it), so the origin's distance
-        ``offset`` is positive; ``inliers`` marks the points within
+        ``offset`` is not negative; ``inliers`` marks the points within
         ``tolerance``.
     """
     array, _ = validate.points("points", points)
@@ -146,13 +146,17 @@ def fit_plane(points, tolerance=0.02, iterations=200, seed=0):
         count = np.count_nonzero(np.abs(scored @ normal - normal @ a) <= tolerance)
         if count > best_count:
             best_count, best = count, (normal, -(normal @ a))
+    no_plane = ValueError("points lie on one line (or one point): they span no plane")
     if best is None:
-        raise ValueError("points lie on one line (or one point): they span no plane")
+        raise no_plane
     normal, offset = best
     inliers = np.abs(array @ normal + offset) <= tolerance
     # Least squares: the normal is the direction in which the inliers spread least.
     centre = array[inliers].mean(axis=0)
-    normal = np.linalg.svd(array[inliers] - centre, full_matrices=False)[2][2]
+    _, spread, axes = np.linalg.svd(array[inliers] - centre, full_matrices=False)
+    if not spread[1] > 1e-12 * spread[0]:
+        raise no_plane  # on a line, up to rounding: every plane through it fits
+    normal = axes[2]
     offset = -float(normal @ centre)
     if offset < 0:
         normal, offset = -normal, -offset

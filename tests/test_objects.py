@@ -265,6 +265,8 @@ def test_fit_plane_and_label_objects_reject_bad_input():
         lt.fit_plane(np.zeros((2, 3)))
     with pytest.raises(ValueError, match="span no plane"):
         lt.fit_plane(np.outer(np.arange(10.0), [1.0, 2.0, 3.0]))
+    with pytest.raises(ValueError, match="span no plane"):  # a line, up to rounding
+        lt.fit_plane(np.outer(np.linspace(0.1, 7.3, 50), [0.3, np.pi, 1 / 3]) + [0.7, 0.1, 0.2])
     with pytest.raises(ValueError, match="tolerance must be a positive number"):
         lt.fit_plane(np.eye(3), tolerance=0.0)
     with pytest.raises(ValueError, match="iterations must be a positive integer"):
