@@ -661,7 +661,7 @@ def _mark_scan_kernel(first_row, origin, points, max_range, grid, zone, times, z
         if is_ray:
             hits[row] = _occupancy.walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, zone[0],
                                             zone[1], zone[2], grid, times[:, :, k],
-                                            zones[:, :, k], lookups[k], free)
+                                            zones[:, :, k], lookups[k], free, 0)
 
 
 @kernel

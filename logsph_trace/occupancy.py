@@ -49,6 +49,122 @@ def _logit(p):
     return float(np.log(p / (1.0 - p)))
 
 
+# A scan from inside the egocentric gap with at least this many rays is marked
+# coherently (``_mark_off_centre``); fewer are all walked whole.
+COHERENT_MIN_RAYS = 20_000
+# The direction bins of the coherent scan: at most this many per cube face side.
+COHERENT_MAX_BINS = 512
+# One ray is sampled per this many bins across (a coarse bin).
+SAMPLE_COARSENING = 2
+
+
+def _coherent_plan(grid, origin, n_rays):
+    """Return the cube-map bins per face side for a coherent scan, or 0 where it does not apply.
+
+    It applies to a sensor off the centre in the egocentric gap, a grid with
+    full theta and phi ranges (a walk then never leaves the region) and
+    enough rays.
+    """
+    distance = float(np.sqrt(np.sum(origin**2)))
+    phi = grid.phi_edges
+    if (n_rays < COHERENT_MIN_RAYS or not 0.0 < distance < grid.rho_edges[0]
+            or not grid.theta_full or phi[0] > -np.pi / 2 or phi[-1] < np.pi / 2):
+        return 0
+    # Bins half the narrowest cell as seen from the sensor, so the samples
+    # cross most cells near it.
+    narrowest = min(np.min(np.diff(grid.theta_edges)), np.min(np.diff(phi)))
+    step = 0.5 * narrowest * grid.rho_edges[0] / (grid.rho_edges[0] + distance)
+    return int(np.clip(np.ceil(2.0 / step), 8, COHERENT_MAX_BINS))
+
+
+def _ray_cone(bins, per_side):
+    """Return (axis x, y, z, half-angle): a cone holding every direction of ``bins``.
+
+    The axis is their centres' mean direction; the half-angle the largest
+    angle from it to a bin's corner (a bin is convex on its face's plane, the
+    cone's cross-section there too, so its corners are its farthest points).
+    """
+    face, rest = np.divmod(bins, per_side * per_side)
+    bu, bv = np.divmod(rest, per_side)
+    step = 2.0 / per_side
+    corners = []
+    for du, dv in ((0, 0), (1, 0), (0, 1), (1, 1), (0.5, 0.5)):
+        u = -1.0 + (bu + du) * step
+        v = -1.0 + (bv + dv) * step
+        axis, sign = face // 2, 1.0 - 2.0 * (face % 2)
+        vectors = np.empty((bins.shape[0], 3))
+        vectors[np.arange(bins.shape[0]), axis] = sign
+        other_a = np.where(axis == 0, 1, 0)
+        other_b = np.where(axis == 2, 1, 2)
+        vectors[np.arange(bins.shape[0]), other_a] = u
+        vectors[np.arange(bins.shape[0]), other_b] = v
+        corners.append(vectors / np.linalg.norm(vectors, axis=1)[:, None])
+    axis = np.sum(corners[-1], axis=0)
+    axis /= np.linalg.norm(axis)
+    cosines = np.concatenate([c @ axis for c in corners[:-1]])
+    half_angle = float(np.arccos(np.clip(np.min(cosines), -1.0, 1.0))) + 1e-9
+    return np.array([*axis, half_angle])
+
+
+def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
+    """Flag the cells the rays from ``origin`` cross (``_kernels.mark_scan``).
+
+    From inside the egocentric gap (``_coherent_plan``), most crossings lie
+    near the sensor, where neighbouring rays cross the same cells. There the
+    scan is marked coherently, with the same cells as walking every ray:
+
+    1. Rays are binned by direction (a cube map, bins about half a cell wide
+       as seen from the sensor); the first ray of each coarse bin
+       (``SAMPLE_COARSENING`` bins across), a sample, is walked whole.
+    2. The skip sphere: the last shell edge that 95% of the samples reach.
+    3. Below it, a cell the samples did not flag that another ray's walk
+       could meet first is a shell-0 cell (its first) or a neighbour of a
+       flagged one; the bins of every direction meeting such a cell are
+       marked (``_kernels.mark_candidates``).
+    4. The other rays in marked bins are walked whole; the rest start on the
+       skip sphere: every cell they cross below it was flagged by a sample.
+
+    ``free`` and ``words``: the per-thread flags (``apply_scan``); ``hits``
+    gets each ray's hit cell. Returns how many rays started on the skip
+    sphere (0 when the scan was walked ray by ray).
+    """
+    args = grid.kernel_args()
+    no_rows = np.empty(0, dtype=np.int64)
+    no_marks = np.empty(0, dtype=np.uint8)
+    per_side = _coherent_plan(grid, origin, points.shape[0])
+    if per_side == 0:
+        _kernels.mark_scan(origin, points, max_range, args, free, hits, no_rows, no_rows,
+                           no_marks, 0)
+        return 0
+    n_bins = 6 * per_side * per_side
+    bins = np.empty(points.shape[0], dtype=np.int64)
+    _kernels.bin_rays(origin, points, per_side, bins)
+    coarse = max(per_side // SAMPLE_COARSENING, 1)
+    samples, others = _kernels.split_samples(bins, per_side, coarse)
+    _kernels.mark_scan(origin, points, max_range, args, free, hits, samples, bins, no_marks, 0)
+    lengths = np.minimum(np.sqrt(np.sum((points[samples] - origin) ** 2, axis=1)), max_range)
+    reach = np.quantile(lengths, 0.05) - np.sqrt(np.sum(origin**2)) if lengths.size else 0.0
+    skip = min(int(np.searchsorted(grid.rho_edges, reach, side="right")) - 1, grid.n_rho - 1, 63)
+    if skip < 1 or others.shape[0] == 0:
+        _kernels.mark_scan(origin, points, max_range, args, free, hits, others, bins, no_marks, 0)
+        return 0
+    # Every ray's coarse bin holds a sample.
+    face, rest = np.divmod(bins[samples], per_side * per_side)
+    bu, bv = np.divmod(rest, per_side)
+    rays = _ray_cone((face * coarse + bu * coarse // per_side) * coarse + bv * coarse // per_side,
+                     coarse)
+    view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
+    _kernels.columns_in_view(origin, args, rays, view)
+    masks = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint64)
+    _kernels.near_masks(free, words, grid.n_rho, skip, view, masks)
+    marked = np.zeros(n_bins, dtype=np.uint8)
+    phi = grid.phi_edges
+    _kernels.mark_candidates(origin, args, np.sin(phi), np.cos(phi), masks, skip, per_side, rays,
+                             view, marked)
+    return int(_kernels.mark_scan(origin, points, max_range, args, free, hits, others, bins,
+                                  marked, skip))
+
+
 class OccupancyGrid:
     """Log-odds occupancy over a grid, updated OctoMap-style.
 
@@ -237,7 +353,7 @@ class OccupancyGrid:
             words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
             free = words.view(np.uint8)  # the same memory, a byte per cell
             start = lap("prepare", start)
-            _kernels.mark_scan(origin, points, max_range, grid.kernel_args(), free, hits)
+            _mark_off_centre(grid, origin, points, max_range, free, hits, words)
             start = lap("mark", start)
             _kernels.apply_scan(self.log_odds.reshape(-1), free, words, hits, grid.n_rho,
                                 *update)

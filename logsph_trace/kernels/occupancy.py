@@ -57,7 +57,7 @@ def _left_within_snap(t_now, t_next, snap, t_closest, h2, i, rho_sq):
 
 @jit
 def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zones, lookups,
-             free):
+             free, skip):
     """Flag the cells one sensor ray (unit direction) crosses up to ``t_max`` in
     ``free`` (indexed column-major, see ``apply_scan``); return the index of its
     end cell when it is a hit that ends inside the region, else -1.
@@ -77,7 +77,11 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     (its chord is known). A ray through or near the y axis or the centre
     sweeps many columns within ~h there: those slivers are not flagged.
     ``ir``, ``jt``, ``kp``: the origin's zones, shared by the scan; ``grid``:
-    the grid's ``GridArrays``.
+    the grid's ``GridArrays``. ``skip``: for a ray from the egocentric gap,
+    the shell whose inner sphere the walk starts on (0: where the ray leaves
+    the gap), when the cells below it are known to be flagged by other rays
+    (``occupancy._mark_off_centre``). A ray that ends within 1e-9 of that sphere, or
+    before it, starts where it leaves the gap.
     """
     rho_sq = grid.rho_sq
     theta_edges = grid.theta_edges
@@ -102,11 +106,17 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
         t_in = t_closest0 + math.sqrt(max(rho_sq[0] - h2_0, 0.0))
         if t_in >= t_max:
             return -1  # ends in the gap
+        i = 0
+        if skip > 0:
+            # Outside the gap rho only grows, so the sphere is crossed once.
+            t_skip = t_closest0 + math.sqrt(max(rho_sq[skip] - h2_0, 0.0))
+            if t_skip < t_max * (1.0 - 1e-9):
+                t_in = t_skip
+                i = skip
         ox += t_in * dx
         oy += t_in * dy
         oz += t_in * dz
         t_max -= t_in
-        i = 0
         jt = theta_zone(ox, oz, theta_edges, theta_kind)
         kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
     t_closest, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
@@ -254,15 +264,19 @@ def sensor_ray(points, row, ox, oy, oz, max_range):
 
 
 @jit(parallel=True)
-def mark_scan(origin, points, max_range, grid, free, hits):
+def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, marked, skip):
     """Walk the ray from ``origin`` to every point of a scan (see ``walk_ray``).
 
     ``max_range``: rays are cut there and end in no hit (``inf``: none).
     ``grid`` is the grid's ``GridArrays``. ``free`` (threads, n_cells) uint8
     has one row per thread, so no two threads write the same place;
     ``hits[row]`` gets ray ``row``'s hit cell (column-major index) or -1.
+    ``rows``: the rays to walk (empty: all). A ray whose direction bin
+    (``bins``) is not ``marked`` starts on sphere ``skip`` (see
+    ``_mark_off_centre``); with ``skip == 0`` every ray is walked whole.
+    Returns how many rays started on that sphere.
     """
-    n_rays = points.shape[0]
+    n_rays = points.shape[0] if rows.shape[0] == 0 else rows.shape[0]
     ox = origin[0]
     oy = origin[1]
     oz = origin[2]
@@ -270,17 +284,345 @@ def mark_scan(origin, points, max_range, grid, free, hits):
     jt = theta_zone(ox, oz, grid.theta_edges, grid.theta_kind)
     kp = phi_zone(ox, oy, oz, grid.phi_edges, grid.phi_kind)
     size = grid_scratch_size(grid)
+    skipped = 0
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         row_free = free[numba.get_thread_id()]
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
-        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+        for n in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            row = n if rows.shape[0] == 0 else rows[n]
             dx, dy, dz, distance, is_hit, is_ray = sensor_ray(points, row, ox, oy, oz, max_range)
             hits[row] = -1
             if is_ray:
+                start = skip if skip > 0 and marked[bins[row]] == 0 else 0
                 hits[row] = walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, ir, jt, kp, grid,
-                                      times, zones, lookups, row_free)
+                                      times, zones, lookups, row_free, start)
+                skipped += start > 0
+    return skipped
+
+
+# ---- The coherent scan (``occupancy._mark_off_centre``) -------------------
+# Rays from a sensor in the egocentric gap cross most of their cells near it,
+# where neighbouring rays cross the same cells. The cells below a sphere
+# ``skip`` are found from a sample of the rays, with a proof that the other
+# rays add none there; those rays are walked from that sphere on.
+#
+# Directions seen from the sensor are indexed by a cube map: face 2 * axis +
+# (1 for the negative half), the axis of the largest |component| (ties to the
+# earlier axis), and on it (u, v), the two other components over that one.
+
+
+@jit(inline="always")
+def _face_of(x, y, z):
+    """Cube-map face of direction (x, y, z) (not all zero)."""
+    ax = abs(x)
+    ay = abs(y)
+    az = abs(z)
+    if ax >= ay and ax >= az:
+        return 0 if x > 0.0 else 1
+    if ay >= az:
+        return 2 if y > 0.0 else 3
+    return 4 if z > 0.0 else 5
+
+
+@jit(inline="always")
+def _on_face(face, x, y, z):
+    """(component along ``face``'s axis, u, v) of direction (x, y, z); u and v
+    are meaningful where the first is > 0."""
+    axis = face // 2
+    sign = 1.0 - 2.0 * (face % 2)
+    if axis == 0:
+        major, a, b = sign * x, y, z
+    elif axis == 1:
+        major, a, b = sign * y, x, z
+    else:
+        major, a, b = sign * z, x, y
+    if major <= 0.0:
+        return major, 0.0, 0.0
+    return major, a / major, b / major
+
+
+@jit(inline="always")
+def _bin_of(u, q):
+    """Bin 0..q-1 of u in [-1, 1] (clamped)."""
+    return min(max(int((u + 1.0) * 0.5 * q), 0), q - 1)
+
+
+@jit(parallel=True)
+def bin_rays(origin, points, q, bins):
+    """Cube-map bin of each ray's direction from ``origin`` (``q`` x ``q`` per
+    face), as ``sensor_ray`` gives it; -1 for no ray (a point at the sensor)."""
+    n_rays = points.shape[0]
+    for block in prange((n_rays + BLOCK - 1) // BLOCK):
+        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            dx, dy, dz, _, _, is_ray = sensor_ray(points, row, origin[0], origin[1], origin[2],
+                                                  np.inf)
+            if is_ray:
+                face = _face_of(dx, dy, dz)
+                _, u, v = _on_face(face, dx, dy, dz)
+                bins[row] = (face * q + _bin_of(u, q)) * q + _bin_of(v, q)
+            else:
+                bins[row] = -1
+
+
+@jit
+def split_samples(bins, q, q_coarse):
+    """The first ray of each coarse bin (the samples), and the other rays, in order.
+
+    A coarse bin (``q_coarse`` per face side) groups the ``q`` x ``q`` bins of
+    ``bins`` whose (u, v) fall in it.
+    """
+    taken = np.zeros(6 * q_coarse * q_coarse, dtype=np.uint8)
+    samples = np.empty(bins.shape[0], dtype=np.int64)
+    others = np.empty(bins.shape[0], dtype=np.int64)
+    n_samples = 0
+    n_others = 0
+    for row in range(bins.shape[0]):
+        b = bins[row]
+        if b < 0:
+            continue
+        face, rest = divmod(b, q * q)
+        bu, bv = divmod(rest, q)
+        coarse = (face * q_coarse + bu * q_coarse // q) * q_coarse + bv * q_coarse // q
+        if taken[coarse] == 0:
+            taken[coarse] = 1
+            samples[n_samples] = row
+            n_samples += 1
+        else:
+            others[n_others] = row
+            n_others += 1
+    return samples[:n_samples], others[:n_others]
+
+
+@jit(parallel=True)
+def columns_in_view(origin, grid, rays, view):
+    """``view[column]`` = 1 where a direction from ``origin`` to the column (at
+    rho >= rho_min) may lie in the rays' cone (``rays``: axis x, y, z and
+    half-angle), else 0: no ray meets that column.
+
+    Seen from the sensor, a point at rho >= rho_min lies within asin(|origin|
+    / rho_min) of its direction from the centre; a column's directions from
+    the centre lie within half its theta and phi widths of its middle one.
+    """
+    n_theta = grid.theta_edges.shape[0] - 1
+    n_phi = grid.phi_edges.shape[0] - 1
+    ox = origin[0]
+    oy = origin[1]
+    oz = origin[2]
+    parallax = math.asin(math.sqrt(ox * ox + oy * oy + oz * oz) / grid.rho_edges[0])
+    for column in prange(n_theta * n_phi):
+        j = column // n_phi
+        k = column % n_phi
+        theta = 0.5 * (grid.theta_edges[j] + grid.theta_edges[j + 1])
+        phi = 0.5 * (grid.phi_edges[k] + grid.phi_edges[k + 1])
+        half = 0.5 * ((grid.theta_edges[j + 1] - grid.theta_edges[j])
+                      + (grid.phi_edges[k + 1] - grid.phi_edges[k]))
+        flat = math.cos(phi)
+        view[column] = _angle(flat * math.sin(theta), math.sin(phi), flat * math.cos(theta),
+                              rays[0], rays[1], rays[2]) <= rays[3] + half + parallax + 1e-9
+
+
+@jit(parallel=True)
+def near_masks(free, words, n_rho, skip, view, masks):
+    """Bit i of ``masks[column]``: a thread flagged cell (i, column), for i < ``skip``.
+
+    Only columns in ``view`` are read (no ray meets the others). ``words`` is
+    ``free`` seen as uint64: eight cells with no flag are passed over at once.
+    """
+    threads = free.shape[0]
+    for column in prange(masks.shape[0]):
+        mask = np.uint64(0)
+        for thread in range(threads if view[column] else 0):
+            i = 0
+            while i < skip:
+                index = column * n_rho + i
+                if index % 8 == 0 and i + 8 <= skip and words[thread, index // 8] == 0:
+                    i += 8
+                    continue
+                if free[thread, index] != 0:
+                    mask |= np.uint64(1) << np.uint64(i)
+                i += 1
+        masks[column] = mask
+
+
+@jit(inline="always")
+def _angle(ax, ay, az, bx, by, bz):
+    """Angle between unit vectors a and b."""
+    return math.acos(max(min(ax * bx + ay * by + az * bz, 1.0), -1.0))
+
+
+# The largest angle between a cube-map face's axis and a direction of that face.
+FACE_REACH = math.acos(1.0 / math.sqrt(3.0))
+# A cell's shadow is bounded through its angular patch split into parts of at
+# most this span (theta + phi, radians), and at most MAX_PARTS x MAX_PARTS.
+SUBPATCH_SPAN = 0.05
+MAX_PARTS = 12
+MAX_CORNERS = 2 * (MAX_PARTS + 1) ** 2
+
+
+@jit(inline="always")
+def _mark_shadow(ox, oy, oz, grid, phi_sin, phi_cos, i, j, k, q, rays, corners, marked):
+    """Mark every bin holding a direction from (ox, oy, oz) that meets cell (i, j, k).
+
+    The angular patch is split in ``parts`` x ``parts`` (``SUBPATCH_SPAN``),
+    and the cell lies within ``sag`` of the convex hull of the parts' corners
+    on both spheres (a curved face bulges by at most r1 (1 - cos(D / 2)) over
+    a part of angular span D), and so within ``radius`` of their centroid g
+    (``corners``: scratch of shape (3, ``MAX_CORNERS``)): the directions meeting it
+    are within ``alpha`` of g's. None of them is a ray's when that cap misses
+    the rays' cone (``rays``: axis x, y, z and half-angle), and none is a
+    face's when the cap misses its directions (within 54.7 degrees of its
+    axis). On a face that all the corners point along, the hull's directions
+    project into the bounding box of the corners' (u, v), and the cell's
+    within ``spread`` of them. Otherwise the whole face is marked.
+    """
+    r0 = grid.rho_edges[i]
+    r1 = grid.rho_edges[i + 1]
+    theta0 = grid.theta_edges[j]
+    phi0 = grid.phi_edges[k]
+    width = grid.theta_edges[j + 1] - theta0
+    height = grid.phi_edges[k + 1] - phi0
+    # Corners of a parts x parts split of the angular patch, on both spheres:
+    # the finer the split, the closer the hull hugs the curved faces.
+    parts = min(max(int(math.ceil((width + height) / SUBPATCH_SPAN)), 1), MAX_PARTS)
+    sag = r1 * (1.0 - math.cos(min(0.5 * (width + height) / parts, 0.5 * math.pi)))
+    spread = 1.6 * sag / (r0 - math.sqrt(ox * ox + oy * oy + oz * oz)) + 1e-9
+    n_points = 2 * (parts + 1) * (parts + 1)
+    gx = 0.0
+    gy = 0.0
+    gz = 0.0
+    c = 0
+    for radius in (r0, r1):
+        for a in range(parts + 1):
+            theta = theta0 + width * a / parts
+            # the edges' own sines and cosines where the split meets them
+            sin_t = grid.theta_sin[j] if a == 0 else (grid.theta_sin[j + 1] if a == parts
+                                                       else math.sin(theta))
+            cos_t = grid.theta_cos[j] if a == 0 else (grid.theta_cos[j + 1] if a == parts
+                                                       else math.cos(theta))
+            for b in range(parts + 1):
+                phi = phi0 + height * b / parts
+                sin_p = phi_sin[k] if b == 0 else (phi_sin[k + 1] if b == parts
+                                                   else math.sin(phi))
+                cos_p = phi_cos[k] if b == 0 else (phi_cos[k + 1] if b == parts
+                                                   else math.cos(phi))
+                flat = radius * cos_p
+                corners[0, c] = flat * sin_t - ox
+                corners[1, c] = radius * sin_p - oy
+                corners[2, c] = flat * cos_t - oz
+                gx += corners[0, c] / n_points
+                gy += corners[1, c] / n_points
+                gz += corners[2, c] / n_points
+                c += 1
+    reach2 = 0.0
+    for c in range(n_points):
+        reach2 = max(reach2, (corners[0, c] - gx) ** 2 + (corners[1, c] - gy) ** 2
+                     + (corners[2, c] - gz) ** 2)
+    radius = (math.sqrt(reach2) + sag) * (1.0 + 1e-9)
+    distance = math.sqrt(gx * gx + gy * gy + gz * gz)
+    everything = radius >= distance  # the sensor inside the ball: no cap
+    alpha = math.asin(min(radius / distance, 1.0)) + 1e-9
+    ex = gx / distance
+    ey = gy / distance
+    ez = gz / distance
+    if not everything and _angle(ex, ey, ez, rays[0], rays[1], rays[2]) > rays[3] + alpha:
+        return  # no ray's direction meets the cell
+    for face in range(6):
+        if not everything:
+            axis = face // 2
+            sign = 1.0 - 2.0 * (face % 2)
+            along = sign * (ex if axis == 0 else (ey if axis == 1 else ez))
+            if math.acos(max(min(along, 1.0), -1.0)) > FACE_REACH + alpha:
+                continue  # the cap misses this face's directions
+        u_min = np.inf
+        u_max = -np.inf
+        v_min = np.inf
+        v_max = -np.inf
+        front = True
+        for c in range(n_points):
+            major, u, v = _on_face(face, corners[0, c], corners[1, c], corners[2, c])
+            front = front and major > 0.0
+            u_min = min(u_min, u)
+            u_max = max(u_max, u)
+            v_min = min(v_min, v)
+            v_max = max(v_max, v)
+        u_from = 0
+        u_to = q - 1
+        v_from = 0
+        v_to = q - 1
+        if front and spread <= 0.1:
+            # A direction of the face is within 54.7 degrees of its axis, one
+            # ``spread`` from it within 60.5, where the projection's scale is
+            # below 1 / cos^2 = 4.21.
+            widen = 4.25 * spread + 1e-12
+            if (u_min - widen > 1.0 or u_max + widen < -1.0 or v_min - widen > 1.0
+                    or v_max + widen < -1.0):
+                continue
+            u_from = _bin_of(u_min - widen, q)
+            u_to = _bin_of(u_max + widen, q)
+            v_from = _bin_of(v_min - widen, q)
+            v_to = _bin_of(v_max + widen, q)
+        for bu in range(u_from, u_to + 1):
+            for bv in range(v_from, v_to + 1):
+                marked[(face * q + bu) * q + bv] = 1
+
+
+@jit(parallel=True)
+def mark_candidates(origin, grid, phi_sin, phi_cos, masks, skip, q, rays, view, marked):
+    """Mark the direction bins of every cell below shell ``skip`` that a walked
+    ray might flag while the sampled rays (``masks``) did not.
+
+    Such a cell is the first on a ray's walk that the samples missed: either
+    the ray's first cell (shell 0) or a neighbour of one they flagged. A walk
+    moves between cells that share a face, across the theta seam, or, at the
+    y axis, between any two columns of a polar row (the grid's ranges are
+    full), so neighbours are taken in the 3 x 3 x 3 block around a cell, and
+    every column of a polar row neighbours the others. ``rays``: a cone (axis
+    x, y, z and half-angle) holding every ray's direction; columns not in
+    ``view`` (``columns_in_view``) are passed over.
+    """
+    n_theta = grid.theta_edges.shape[0] - 1
+    n_phi = grid.phi_edges.shape[0] - 1
+    below = (np.uint64(1) << np.uint64(skip)) - np.uint64(1)
+    pole_low = np.uint64(0)
+    pole_high = np.uint64(0)
+    for j in range(n_theta):
+        pole_low |= masks[j * n_phi]
+        pole_high |= masks[j * n_phi + n_phi - 1]
+    n_columns = n_theta * n_phi
+    for block in prange((n_columns + BLOCK - 1) // BLOCK):
+        corners = np.empty((3, MAX_CORNERS), dtype=np.float64)
+        for column in range(block * BLOCK, min(n_columns, (block + 1) * BLOCK)):
+            if view[column]:
+                _mark_column_candidates(origin[0], origin[1], origin[2], grid, phi_sin, phi_cos,
+                                        masks, skip, q, column // n_phi, column % n_phi, below,
+                                        pole_low, pole_high, rays, corners, marked)
+
+
+@jit(inline="always")
+def _mark_column_candidates(ox, oy, oz, grid, phi_sin, phi_cos, masks, skip, q, j, k, below,
+                            pole_low, pole_high, rays, corners, marked):
+    """``mark_candidates`` for column (j, k)."""
+    n_theta = grid.theta_edges.shape[0] - 1
+    n_phi = grid.phi_edges.shape[0] - 1
+    one = np.uint64(1)
+    grown = one  # shell 0: any ray's first cell
+    for dj in range(-1, 2):
+        jj = (j + dj) % n_theta
+        for dk in range(-1, 2):
+            kk = k + dk
+            if 0 <= kk < n_phi:
+                near = masks[jj * n_phi + kk]
+                grown |= near | (near << one) | (near >> one)
+    if k == 0:
+        grown |= pole_low | (pole_low << one) | (pole_low >> one)
+    if k == n_phi - 1:
+        grown |= pole_high | (pole_high << one) | (pole_high >> one)
+    candidates = grown & ~masks[j * n_phi + k] & below
+    for i in range(skip):
+        if (candidates >> np.uint64(i)) & one:
+            _mark_shadow(ox, oy, oz, grid, phi_sin, phi_cos, i, j, k, q, rays, corners, marked)
 
 
 @jit

@@ -1,0 +1,198 @@
+"""The coherent scan: from a sensor in the egocentric gap, most rays are walked
+from a sphere near their end, once samples have flagged the cells below it and
+the rays that could add a cell there are found (``occupancy._mark_off_centre``).
+The flags must be exactly those of walking every ray.
+"""
+
+import numba
+import numpy as np
+import pytest
+from singular import OFFSETS, aim
+from test_occupancy import _reference_log_odds
+
+import logsph_trace as lt
+from logsph_trace import occupancy as occ
+from logsph_trace.kernels import occupancy as kernels
+
+
+def _camera_scan(rng, sensor, forward, up=(0.0, 1.0, 0.0), shape=(120, 160), focal=180.0,
+                 depth=(1.0, 4.0)):
+    """End points of a pinhole camera at ``sensor``: a smooth random depth image
+    with blocks of missing pixels, and a few rays ending near the sensor."""
+    forward = np.asarray(forward, dtype=np.float64) / np.linalg.norm(forward)
+    right = np.cross(up, forward)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]]
+    u = (cols - shape[1] / 2 + rng.uniform(-0.5, 0.5)) / focal
+    v = (rows - shape[0] / 2 + rng.uniform(-0.5, 0.5)) / focal
+    directions = forward + u[..., None] * right + v[..., None] * down
+    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    low, high = depth
+    waves = np.sin(cols / rng.uniform(7, 19)) * np.cos(rows / rng.uniform(5, 13))
+    distance = low + (high - low) * (0.5 + 0.5 * waves) * rng.uniform(0.8, 1.0, shape)
+    keep = np.ones(shape, dtype=bool)
+    for _ in range(6):  # holes: pixels without depth
+        r, c = rng.integers(0, shape[0]), rng.integers(0, shape[1])
+        keep[r:r + rng.integers(3, 30), c:c + rng.integers(3, 30)] = False
+    near = rng.random(shape) < 0.01  # some rays end near the sensor, some in the gap
+    distance[near] = rng.uniform(0.01, 1.0, np.count_nonzero(near))
+    points = sensor + distance[..., None] * directions
+    return points[keep]
+
+
+SCANS = [  # (grid, sensor, the camera's forward direction, its focal length in pixels)
+    (lt.Grid(0.3, 8.0, 64, 360, 180), (0.06, 0.08, 0.0), (0.0, 0.0, 1.0), 180.0),
+    # looking up at the +y axis: rays cross the polar row's columns
+    (lt.Grid(0.3, 8.0, 64, 360, 180), (0.05, -0.1, 0.12), (0.1, 1.0, 0.05), 180.0),
+    # across the theta seam (-z) and with coarse cells
+    (lt.Grid(0.5, 6.0, 16, 36, 18), (0.2, -0.1, 0.15), (0.05, -0.2, -1.0), 180.0),
+    (lt.Grid(0.4, 5.0, 40, 180, 90, spacing="uniform"), (-0.1, 0.1, 0.1), (-1.0, 0.3, 0.2),
+     180.0),
+    # uneven edges: the narrowest cell sets the bins, so a long focal length
+    (lt.Grid.from_edges(np.geomspace(0.25, 6.0, 30),
+                        np.sort(np.r_[-np.pi, np.pi, np.random.default_rng(5).uniform(-3, 3, 70)]),
+                        np.sort(np.r_[-np.pi / 2, np.pi / 2,
+                                      np.random.default_rng(6).uniform(-1.5, 1.5, 40)])),
+     (0.1, 0.0, -0.05), (0.3, -0.4, 1.0), 900.0),
+]
+
+
+@pytest.fixture
+def coherent_from_1000_rays(monkeypatch):
+    monkeypatch.setattr(occ, "COHERENT_MIN_RAYS", 1000)
+
+
+def _flags(grid, sensor, points, max_range=np.inf):
+    """Run ``_mark_off_centre``; return its flag union, hits and the rays it skipped."""
+    n_cells = int(np.prod(grid.shape))
+    words = np.zeros((numba.get_num_threads(), -(-n_cells // 8)), dtype=np.uint64)
+    free = words.view(np.uint8)
+    hits = np.empty(points.shape[0], dtype=np.int64)
+    skipped = occ._mark_off_centre(grid, np.asarray(sensor, dtype=np.float64), points, max_range,
+                                   free, hits, words)
+    return np.any(free[:, :n_cells] != 0, axis=0), hits, skipped
+
+
+@pytest.mark.parametrize("grid, sensor, forward, focal", SCANS)
+def test_coherent_scan_equals_walking_every_ray(grid, sensor, forward, focal,
+                                                coherent_from_1000_rays):
+    rng = np.random.default_rng(41)
+    points = _camera_scan(rng, np.asarray(sensor), forward, focal=focal)
+    for max_range in (None, 2.5):
+        got = lt.OccupancyGrid(grid).integrate(points, sensor, max_range=max_range)
+        np.testing.assert_array_equal(got.log_odds,
+                                      _reference_log_odds(grid, points, sensor, max_range))
+    # The scan took the shortcut for most rays, the same way on any thread count.
+    flags, hits, skipped = _flags(grid, sensor, points)
+    assert skipped > 0.25 * points.shape[0]
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one_flags, one_hits, one_skipped = _flags(grid, sensor, points)
+    finally:
+        numba.set_num_threads(threads)
+    np.testing.assert_array_equal(one_flags, flags)
+    np.testing.assert_array_equal(one_hits, hits)
+    assert one_skipped == skipped
+
+
+@pytest.mark.parametrize("kind", ["centre", "y_axis", "corner"])
+def test_near_singular_rays_in_a_coherent_scan(kind, coherent_from_1000_rays):
+    grid, sensor, forward, _ = SCANS[0]
+    rng = np.random.default_rng(43)
+    sensor = np.asarray(sensor)
+    # Rays at (and 1e-15 ... 1e-3 x rho_max beside) the set, ending before it,
+    # on it and beyond it, among a camera's rays passing by.
+    camera = _camera_scan(rng, sensor, forward)
+    targets = np.array([aim(rng, grid, kind, offset, sensor) for offset in OFFSETS
+                        for _ in range(60)])
+    aimed = sensor + rng.uniform(0.3, 2.5, (len(targets), 1)) * (targets - sensor)
+    points = np.concatenate([camera, aimed])
+    got = lt.OccupancyGrid(grid).integrate(points, sensor)
+    np.testing.assert_array_equal(got.log_odds, _reference_log_odds(grid, points, sensor))
+    assert _flags(grid, sensor, points)[2] > 0
+
+
+def test_the_real_frame_off_the_centre_equals_walking_every_ray(monkeypatch):
+    pytest.importorskip("skimage")
+    from logsph_trace import datasets
+    from logsph_trace.sensor import DEFAULT_ROTATION
+
+    frame = datasets.motorcycle()
+    grid = lt.Grid(0.3, 8.0, 64, 360, 180)
+    sensor = np.array([0.06, 0.08, 0.0])
+    points = lt.depth_to_points(frame.depth, frame.intrinsics, (DEFAULT_ROTATION, sensor)).points
+    coherent = lt.OccupancyGrid(grid).integrate(points, sensor).log_odds
+    monkeypatch.setattr(occ, "COHERENT_MIN_RAYS", points.shape[0] + 1)
+    plain = lt.OccupancyGrid(grid).integrate(points, sensor).log_odds
+    np.testing.assert_array_equal(coherent, plain)
+    flags, hits, skipped = _flags(grid, sensor, points)
+    assert skipped == 0  # the plain walk
+    monkeypatch.setattr(occ, "COHERENT_MIN_RAYS", 1000)
+    assert _flags(grid, sensor, points)[2] > 0.8 * points.shape[0]
+
+
+def _inside(rng, grid, i, j, k, n):
+    """``n`` points of cell (i, j, k): random, its corners and its edges' middles."""
+    rho = np.r_[rng.uniform(grid.rho_edges[i], grid.rho_edges[i + 1], n),
+                np.repeat(grid.rho_edges[i:i + 2], 9)]
+    theta_pick = np.r_[0.0, 0.5, 1.0]
+    theta = np.r_[rng.uniform(grid.theta_edges[j], grid.theta_edges[j + 1], n),
+                  np.tile(np.repeat(grid.theta_edges[j] + theta_pick * (grid.theta_edges[j + 1]
+                                                                        - grid.theta_edges[j]),
+                                    3), 2)]
+    phi = np.r_[rng.uniform(grid.phi_edges[k], grid.phi_edges[k + 1], n),
+                np.tile(grid.phi_edges[k] + theta_pick * (grid.phi_edges[k + 1]
+                                                          - grid.phi_edges[k]), 6)]
+    return np.stack([rho * np.cos(phi) * np.sin(theta), rho * np.sin(phi),
+                     rho * np.cos(phi) * np.cos(theta)], axis=1)
+
+
+@pytest.mark.parametrize("grid, sensor", [scan[:2] for scan in SCANS])
+def test_a_cells_shadow_holds_every_direction_meeting_it(grid, sensor):
+    # The proof's geometric step: the bins marked for a cell hold every
+    # direction from the sensor to a point of it.
+    rng = np.random.default_rng(47)
+    origin = np.asarray(sensor, dtype=np.float64)
+    args = grid.kernel_args()
+    phi = grid.phi_edges
+    q = occ._coherent_plan(grid, origin, 10**9)
+    corners = np.empty((3, kernels.MAX_CORNERS))
+    everywhere = np.array([0.0, 0.0, 1.0, np.pi])
+    polar = [(rng.integers(0, 4), rng.integers(0, grid.n_theta), k) for k in (0, grid.n_phi - 1)]
+    cells = [(rng.integers(0, min(grid.n_rho, 64)), rng.integers(0, grid.n_theta),
+              rng.integers(0, grid.n_phi)) for _ in range(60)] + polar
+    for i, j, k in cells:
+        points = _inside(rng, grid, i, j, k, 300)
+        bins = np.empty(points.shape[0], dtype=np.int64)
+        kernels.bin_rays(origin, points, q, bins)
+        directions = points - origin
+        directions /= np.linalg.norm(directions, axis=1)[:, None]
+        axis = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
+        tight = np.r_[axis, np.arccos(np.clip(directions @ axis, -1, 1)).max()]
+        for rays in (everywhere, tight):
+            marked = np.zeros(6 * q * q, dtype=np.uint8)
+            kernels._mark_shadow(*origin, args, np.sin(phi), np.cos(phi), i, j, k, q, rays,
+                                 corners, marked)
+            assert marked[bins].all(), (i, j, k)
+        # Directions of the cone around another axis do not meet the cell: nothing marked.
+        marked = np.zeros(6 * q * q, dtype=np.uint8)
+        kernels._mark_shadow(*origin, args, np.sin(phi), np.cos(phi), i, j, k, q,
+                             np.r_[-axis, 0.1], corners, marked)
+        assert not marked.any() or tight[3] > 1.0
+
+
+def test_the_ray_cone_holds_every_ray():
+    rng = np.random.default_rng(53)
+    origin = np.array([0.06, 0.08, 0.0])
+    for forward in ((0, 0, 1), (1, 1, 1), (0, -1, 0.01)):
+        points = _camera_scan(rng, origin, forward, up=(0.3, 0.1, 1.0) if forward[2] == 0
+                              else (0.0, 1.0, 0.0))
+        for q in (8, 101, 306):
+            bins = np.empty(points.shape[0], dtype=np.int64)
+            kernels.bin_rays(origin, points, q, bins)
+            cone = occ._ray_cone(np.unique(bins), q)
+            directions = points - origin
+            directions /= np.linalg.norm(directions, axis=1)[:, None]
+            assert np.arccos(np.clip(directions @ cone[:3], -1, 1)).max() <= cone[3]
