@@ -672,9 +672,11 @@ def _mark_radial_kernel(points, max_range, grid, per_log, free_extent, hits):
     """
     row = cuda.grid(1)
     if row < points.shape[0]:
-        column, free, hits[row] = _occupancy.radial_ray(
-            points, row, max_range, grid.rho_edges, grid.rho_kind, per_log, grid.theta_edges,
-            grid.theta_kind, grid.phi_edges, grid.phi_kind)
+        guesses = cuda.local.array(3, np.int64)
+        for zone in range(3):
+            guesses[zone] = -1
+        column, free, hits[row] = _occupancy.radial_ray(points, row, max_range, grid, per_log,
+                                                        guesses)
         if column >= 0 and free > 0:
             cuda.atomic.max(free_extent, column, free)
 

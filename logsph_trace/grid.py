@@ -265,7 +265,7 @@ class Grid:
             cached = _locate.GridArrays(
                 self.rho_edges, self.rho_edges**2, self.rho_kind,
                 theta, np.sin(theta), np.cos(theta), self.theta_kind, self.theta_full,
-                phi, np.tan(phi) ** 2, np.sign(phi), self.phi_kind,
+                phi, np.tan(phi) ** 2, np.sign(phi), self.phi_kind, np.sin(phi), np.cos(phi),
             )
             object.__setattr__(self, "_kernel_args", cached)
         return cached

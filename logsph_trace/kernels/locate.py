@@ -50,6 +50,8 @@ class GridArrays(NamedTuple):
     phi_tan2: np.ndarray  # tan(phi_edges) ** 2
     phi_nappe: np.ndarray  # sign(phi_edges): the cone's half
     phi_kind: int
+    phi_sin: np.ndarray
+    phi_cos: np.ndarray
 
 
 @jit(inline="always")
@@ -190,6 +192,41 @@ def theta_zone(x, z, theta_edges, theta_kind):
 def phi_zone(x, y, z, phi_edges, phi_kind):
     """Elevation zone of the point (x, y, z)."""
     return locate(elevation(x, y, z), phi_edges, phi_kind)
+
+
+# A point this far inside a sector (the sine of its angle to either edge, over
+# its distance from the axis) is in that sector by atan2 and the edges too:
+# their rounding is ~1e-16.
+INSIDE_MARGIN = 1e-12
+
+
+@jit(inline="always")
+def theta_zone_near(x, z, guess, grid):
+    """``theta_zone`` of (x, z), trying zone ``guess`` (a neighbour's) first.
+
+    A point inside that sector by more than ``INSIDE_MARGIN``, by the sines
+    of its angles to the edges (from the edges' own sines and cosines), is in
+    it by atan2 as well; any other point is looked up.
+    """
+    edges = grid.theta_edges
+    if 0 <= guess < edges.shape[0] - 1 and edges[guess + 1] - edges[guess] < 3.0:
+        margin = INSIDE_MARGIN * (abs(x) + abs(z))
+        if (x * grid.theta_cos[guess] - z * grid.theta_sin[guess] > margin
+                and z * grid.theta_sin[guess + 1] - x * grid.theta_cos[guess + 1] > margin):
+            return guess
+    return theta_zone(x, z, edges, grid.theta_kind)
+
+
+@jit(inline="always")
+def phi_zone_near(x, y, z, guess, grid):
+    """``phi_zone`` of (x, y, z), trying zone ``guess`` first (see ``theta_zone_near``)."""
+    if 0 <= guess < grid.phi_edges.shape[0] - 1:
+        flat = math.sqrt(x * x + z * z)
+        margin = INSIDE_MARGIN * (abs(y) + flat)
+        if (y * grid.phi_cos[guess] - flat * grid.phi_sin[guess] > margin
+                and flat * grid.phi_sin[guess + 1] - y * grid.phi_cos[guess + 1] > margin):
+            return guess
+    return phi_zone(x, y, z, grid.phi_edges, grid.phi_kind)
 
 
 @jit

@@ -29,8 +29,10 @@ from .locate import (
     log_cells,
     norm3,
     phi_zone,
+    phi_zone_near,
     rho_zone,
     theta_zone,
+    theta_zone_near,
 )
 
 # Per-thread flag bits of a cell in one scan.
@@ -85,7 +87,6 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     """
     rho_sq = grid.rho_sq
     theta_edges = grid.theta_edges
-    theta_kind = grid.theta_kind
     theta_full = grid.theta_full
     phi_edges = grid.phi_edges
     phi_kind = grid.phi_kind
@@ -117,8 +118,11 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
         oy += t_in * dy
         oz += t_in * dz
         t_max -= t_in
-        jt = theta_zone(ox, oz, theta_edges, theta_kind)
-        kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
+        # The zones of the last ray walked with these ``lookups`` are guesses.
+        jt = theta_zone_near(ox, oz, lookups[0], grid)
+        kp = phi_zone_near(ox, oy, oz, lookups[1], grid)
+        lookups[0] = jt
+        lookups[1] = kp
     t_closest, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
     if h2 >= rho_sq[n_rho]:
         return -1  # the line misses the outer sphere (or only touches it)
@@ -127,8 +131,10 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
         return -1  # beyond rho_max and moving away
     t_final = min(t_max, t_leave)
 
-    jt_limit = theta_zone(dx, dz, theta_edges, theta_kind)
-    kp_limit = phi_zone(dx, dy, dz, phi_edges, phi_kind)
+    jt_limit = theta_zone_near(dx, dz, lookups[2], grid)
+    kp_limit = phi_zone_near(dx, dy, dz, lookups[3], grid)
+    lookups[2] = jt_limit
+    lookups[3] = kp_limit
     jt, th_sigma, th_steps, t_axis = theta_plan(
         ox, oz, cx, cz, dx, dz, t_closest, jt, jt_limit, theta_edges, theta_full, lookups, False
     )
@@ -676,22 +682,31 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
 
 
 @jit(inline="always")
-def radial_ray(points, row, max_range, rho_edges, rho_kind, per_log, theta_edges, theta_kind,
-               phi_edges, phi_kind):
+def radial_ray(points, row, max_range, grid, per_log, guesses):
     """Ray ``row`` of a scan from the grid's origin (see ``mark_radial``): its
     column (``j * n_phi + k``, or -1 when it misses the region), how many
-    shells from the centre it frees, and its hit cell's map index or -1."""
+    shells from the centre it frees, and its hit cell's map index or -1.
+
+    ``guesses``: the (theta, phi, rho) zones of the ray before, tried first
+    (``theta_zone_near``); they are updated to this ray's.
+    """
+    rho_edges = grid.rho_edges
     n_rho = rho_edges.shape[0] - 1
-    n_theta = theta_edges.shape[0] - 1
-    n_phi = phi_edges.shape[0] - 1
+    n_theta = grid.theta_edges.shape[0] - 1
+    n_phi = grid.phi_edges.shape[0] - 1
     x, y, z, distance, is_hit, is_ray = sensor_ray(points, row, 0.0, 0.0, 0.0, max_range)
     if not is_ray:
         return -1, 0, -1
-    j = theta_zone(x, z, theta_edges, theta_kind)
-    k = phi_zone(x, y, z, phi_edges, phi_kind)
+    j = theta_zone_near(x, z, guesses[0], grid)
+    k = phi_zone_near(x, y, z, guesses[1], grid)
+    guesses[0] = j
+    guesses[1] = k
     if j >= n_theta or k < 0 or k >= n_phi:
         return -1, 0, -1  # outside the angular range: the ray never enters the region
-    shell = locate_in(distance, rho_edges, rho_kind, per_log)  # -1: gap, n_rho: beyond
+    shell = guesses[2]  # -1: gap, n_rho: beyond
+    if not (0 <= shell < n_rho and rho_edges[shell] <= distance < rho_edges[shell + 1]):
+        shell = locate_in(distance, rho_edges, grid.rho_kind, per_log)
+        guesses[2] = shell
     if 0 <= shell < n_rho and distance == rho_edges[shell]:
         # The ray stops on the sphere below its shell, which the trace
         # only crosses before t_max: it ends in the cell below.
@@ -730,10 +745,9 @@ def mark_radial(points, max_range, grid, free_extent, hits):
     per_log = log_cells(rho_edges) if rho_kind == LOG else 0.0
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         thread = numba.get_thread_id()
+        guesses = np.full(3, -1, dtype=np.int64)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            column, free, hits[row] = radial_ray(
-                points, row, max_range, rho_edges, rho_kind, per_log, grid.theta_edges,
-                grid.theta_kind, grid.phi_edges, grid.phi_kind)
+            column, free, hits[row] = radial_ray(points, row, max_range, grid, per_log, guesses)
             if column >= 0 and free > free_extent[thread, column]:
                 free_extent[thread, column] = free
 
