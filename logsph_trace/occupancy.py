@@ -116,17 +116,18 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
     1. Rays are binned by direction (a cube map, bins about half a cell wide
        as seen from the sensor); the first ray of each coarse bin
        (``SAMPLE_COARSENING`` bins across), a sample, is walked whole.
-    2. The skip sphere: the last shell edge that 95% of the samples reach.
-    3. Below it, a cell the samples did not flag that another ray's walk
-       could meet first is a shell-0 cell (its first) or a neighbour of a
-       flagged one; the bins of every direction meeting such a cell are
-       marked (``_kernels.mark_candidates``).
-    4. The other rays in marked bins are walked whole; the rest start on the
-       skip sphere: every cell they cross below it was flagged by a sample.
+    2. A cell the samples did not flag that another ray's walk could meet
+       first is a shell-0 cell (its first) or a neighbour of a flagged one:
+       a candidate. Each direction bin gets a limit, the lowest shell of a
+       candidate that a direction in it meets (``_kernels.mark_candidates``).
+    3. The other rays start on the inner sphere of their bin's limit, or the
+       last one below it they cross: every cell they cross below it was
+       flagged by a sample. Near the sensor that is most cells; a ray far
+       from the silhouettes of nearer things starts close to its end.
 
     ``free`` and ``words``: the per-thread flags (``apply_scan``); ``hits``
-    gets each ray's hit cell. Returns how many rays started on the skip
-    sphere (0 when the scan was walked ray by ray).
+    gets each ray's hit cell. Returns how many rays were let start beyond
+    the gap's sphere (0 when the scan was walked ray by ray).
     """
     args = grid.kernel_args()
     no_rows = np.empty(0, dtype=np.int64)
@@ -142,11 +143,7 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
     coarse = max(per_side // SAMPLE_COARSENING, 1)
     samples, others = _kernels.split_samples(bins, per_side, coarse)
     _kernels.mark_scan(origin, points, max_range, args, free, hits, samples, bins, no_marks, 0)
-    lengths = np.minimum(np.sqrt(np.sum((points[samples] - origin) ** 2, axis=1)), max_range)
-    reach = np.quantile(lengths, 0.05) - np.sqrt(np.sum(origin**2)) if lengths.size else 0.0
-    skip = min(int(np.searchsorted(grid.rho_edges, reach, side="right")) - 1, grid.n_rho - 1, 63)
-    if skip < 1 or others.shape[0] == 0:
-        _kernels.mark_scan(origin, points, max_range, args, free, hits, others, bins, no_marks, 0)
+    if others.shape[0] == 0:
         return 0
     # Every ray's coarse bin holds a sample.
     face, rest = np.divmod(bins[samples], per_side * per_side)
@@ -155,14 +152,14 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
                      coarse)
     view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
     _kernels.columns_in_view(origin, args, rays, view)
+    skip = min(grid.n_rho - 1, 63)  # the masks' 64 bits
     masks = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint64)
     _kernels.near_masks(free, words, grid.n_rho, skip, view, masks)
-    marked = np.zeros(n_bins, dtype=np.uint8)
-    phi = grid.phi_edges
-    _kernels.mark_candidates(origin, args, np.sin(phi), np.cos(phi), masks, skip, per_side, rays,
-                             view, marked)
+    limit = np.empty(n_bins, dtype=np.uint8)
+    _kernels.mark_candidates(origin, args, masks, skip, per_side, rays, view,
+                             np.empty((free.shape[0], n_bins), dtype=np.uint8), limit)
     return int(_kernels.mark_scan(origin, points, max_range, args, free, hits, others, bins,
-                                  marked, skip))
+                                  limit, skip))
 
 
 class OccupancyGrid:

@@ -151,12 +151,11 @@ def _inside(rng, grid, i, j, k, n):
 
 @pytest.mark.parametrize("grid, sensor", [scan[:2] for scan in SCANS])
 def test_a_cells_shadow_holds_every_direction_meeting_it(grid, sensor):
-    # The proof's geometric step: the bins marked for a cell hold every
-    # direction from the sensor to a point of it.
+    # The proof's geometric step: the bins a cell lowers to its shell hold
+    # every direction from the sensor to a point of it.
     rng = np.random.default_rng(47)
     origin = np.asarray(sensor, dtype=np.float64)
     args = grid.kernel_args()
-    phi = grid.phi_edges
     q = occ._coherent_plan(grid, origin, 10**9)
     corners = np.empty((3, kernels.MAX_CORNERS))
     everywhere = np.array([0.0, 0.0, 1.0, np.pi])
@@ -172,15 +171,13 @@ def test_a_cells_shadow_holds_every_direction_meeting_it(grid, sensor):
         axis = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
         tight = np.r_[axis, np.arccos(np.clip(directions @ axis, -1, 1)).max()]
         for rays in (everywhere, tight):
-            marked = np.zeros(6 * q * q, dtype=np.uint8)
-            kernels._mark_shadow(*origin, args, np.sin(phi), np.cos(phi), i, j, k, q, rays,
-                                 corners, marked)
-            assert marked[bins].all(), (i, j, k)
-        # Directions of the cone around another axis do not meet the cell: nothing marked.
-        marked = np.zeros(6 * q * q, dtype=np.uint8)
-        kernels._mark_shadow(*origin, args, np.sin(phi), np.cos(phi), i, j, k, q,
-                             np.r_[-axis, 0.1], corners, marked)
-        assert not marked.any() or tight[3] > 1.0
+            limit = np.full(6 * q * q, 200, dtype=np.uint8)
+            kernels._mark_shadow(*origin, args, i, j, k, q, rays, corners, limit)
+            assert (limit[bins] == i).all(), (i, j, k)
+        # Directions of the cone around another axis do not meet the cell: nothing lowered.
+        limit = np.full(6 * q * q, 200, dtype=np.uint8)
+        kernels._mark_shadow(*origin, args, i, j, k, q, np.r_[-axis, 0.1], corners, limit)
+        assert (limit == 200).all() or tight[3] > 1.0
 
 
 def test_the_ray_cone_holds_every_ray():

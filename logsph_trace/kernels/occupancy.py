@@ -25,6 +25,7 @@ from .exact import (
 from .locate import (
     BLOCK,
     LOG,
+    _last_at_or_below,
     locate_in,
     log_cells,
     norm3,
@@ -80,10 +81,10 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     sweeps many columns within ~h there: those slivers are not flagged.
     ``ir``, ``jt``, ``kp``: the origin's zones, shared by the scan; ``grid``:
     the grid's ``GridArrays``. ``skip``: for a ray from the egocentric gap,
-    the shell whose inner sphere the walk starts on (0: where the ray leaves
-    the gap), when the cells below it are known to be flagged by other rays
-    (``occupancy._mark_off_centre``). A ray that ends within 1e-9 of that sphere, or
-    before it, starts where it leaves the gap.
+    the shell whose inner sphere the walk may start on (0: where the ray
+    leaves the gap), when the cells below it are known to be flagged by
+    other rays (``occupancy._mark_off_centre``); a ray that ends before it
+    (or within 1e-9 of it) starts on the last sphere it crosses before.
     """
     rho_sq = grid.rho_sq
     theta_edges = grid.theta_edges
@@ -109,11 +110,18 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
             return -1  # ends in the gap
         i = 0
         if skip > 0:
-            # Outside the gap rho only grows, so the sphere is crossed once.
-            t_skip = t_closest0 + math.sqrt(max(rho_sq[skip] - h2_0, 0.0))
-            if t_skip < t_max * (1.0 - 1e-9):
-                t_in = t_skip
-                i = skip
+            # Outside the gap rho only grows, so each sphere is crossed once:
+            # start on the last one below ``skip`` crossed before the end.
+            skip = min(skip, _last_at_or_below((t_max - t_closest0) ** 2 + h2_0, rho_sq))
+            for _ in range(n_rho + 1):
+                if skip <= 0:
+                    break
+                t_skip = t_closest0 + math.sqrt(max(rho_sq[skip] - h2_0, 0.0))
+                if t_skip < t_max * (1.0 - 1e-9):
+                    t_in = t_skip
+                    i = skip
+                    break
+                skip -= 1
         ox += t_in * dx
         oy += t_in * dy
         oz += t_in * dz
@@ -270,17 +278,17 @@ def sensor_ray(points, row, ox, oy, oz, max_range):
 
 
 @jit(parallel=True)
-def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, marked, skip):
+def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, skip):
     """Walk the ray from ``origin`` to every point of a scan (see ``walk_ray``).
 
     ``max_range``: rays are cut there and end in no hit (``inf``: none).
     ``grid`` is the grid's ``GridArrays``. ``free`` (threads, n_cells) uint8
     has one row per thread, so no two threads write the same place;
     ``hits[row]`` gets ray ``row``'s hit cell (column-major index) or -1.
-    ``rows``: the rays to walk (empty: all). A ray whose direction bin
-    (``bins``) is not ``marked`` starts on sphere ``skip`` (see
+    ``rows``: the rays to walk (empty: all). A ray may start on sphere
+    ``limit`` of its direction bin (``bins``), ``skip`` at most (see
     ``_mark_off_centre``); with ``skip == 0`` every ray is walked whole.
-    Returns how many rays started on that sphere.
+    Returns how many rays were let start beyond the gap's sphere.
     """
     n_rays = points.shape[0] if rows.shape[0] == 0 else rows.shape[0]
     ox = origin[0]
@@ -301,7 +309,7 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, marked, s
             dx, dy, dz, distance, is_hit, is_ray = sensor_ray(points, row, ox, oy, oz, max_range)
             hits[row] = -1
             if is_ray:
-                start = skip if skip > 0 and marked[bins[row]] == 0 else 0
+                start = min(np.int64(limit[bins[row]]), skip) if skip > 0 else 0
                 hits[row] = walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, ir, jt, kp, grid,
                                       times, zones, lookups, row_free, start)
                 skipped += start > 0
@@ -468,8 +476,9 @@ MAX_CORNERS = 2 * (MAX_PARTS + 1) ** 2
 
 
 @jit(inline="always")
-def _mark_shadow(ox, oy, oz, grid, phi_sin, phi_cos, i, j, k, q, rays, corners, marked):
-    """Mark every bin holding a direction from (ox, oy, oz) that meets cell (i, j, k).
+def _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit):
+    """Lower to ``i`` the ``limit`` of every bin holding a direction from (ox, oy, oz)
+    that meets cell (i, j, k).
 
     The angular patch is split in ``parts`` x ``parts`` (``SUBPATCH_SPAN``),
     and the cell lies within ``sag`` of the convex hull of the parts' corners
@@ -481,7 +490,7 @@ def _mark_shadow(ox, oy, oz, grid, phi_sin, phi_cos, i, j, k, q, rays, corners, 
     face's when the cap misses its directions (within 54.7 degrees of its
     axis). On a face that all the corners point along, the hull's directions
     project into the bounding box of the corners' (u, v), and the cell's
-    within ``spread`` of them. Otherwise the whole face is marked.
+    within ``spread`` of them. Otherwise the whole face's bins are lowered.
     """
     r0 = grid.rho_edges[i]
     r1 = grid.rho_edges[i + 1]
@@ -509,10 +518,10 @@ def _mark_shadow(ox, oy, oz, grid, phi_sin, phi_cos, i, j, k, q, rays, corners, 
                                                        else math.cos(theta))
             for b in range(parts + 1):
                 phi = phi0 + height * b / parts
-                sin_p = phi_sin[k] if b == 0 else (phi_sin[k + 1] if b == parts
-                                                   else math.sin(phi))
-                cos_p = phi_cos[k] if b == 0 else (phi_cos[k + 1] if b == parts
-                                                   else math.cos(phi))
+                sin_p = grid.phi_sin[k] if b == 0 else (grid.phi_sin[k + 1] if b == parts
+                                                        else math.sin(phi))
+                cos_p = grid.phi_cos[k] if b == 0 else (grid.phi_cos[k + 1] if b == parts
+                                                        else math.cos(phi))
                 flat = radius * cos_p
                 corners[0, c] = flat * sin_t - ox
                 corners[1, c] = radius * sin_p - oy
@@ -571,13 +580,16 @@ def _mark_shadow(ox, oy, oz, grid, phi_sin, phi_cos, i, j, k, q, rays, corners, 
             v_to = _bin_of(v_max + widen, q)
         for bu in range(u_from, u_to + 1):
             for bv in range(v_from, v_to + 1):
-                marked[(face * q + bu) * q + bv] = 1
+                index = (face * q + bu) * q + bv
+                if limit[index] > i:
+                    limit[index] = i
 
 
 @jit(parallel=True)
-def mark_candidates(origin, grid, phi_sin, phi_cos, masks, skip, q, rays, view, marked):
-    """Mark the direction bins of every cell below shell ``skip`` that a walked
-    ray might flag while the sampled rays (``masks``) did not.
+def mark_candidates(origin, grid, masks, skip, q, rays, view, limits, limit):
+    """Set ``limit[bin]`` to the lowest shell below ``skip`` of a cell that a
+    walked ray with a direction in that bin might flag while the sampled rays
+    (``masks``) did not (``skip`` where there is none).
 
     Such a cell is the first on a ray's walk that the samples missed: either
     the ray's first cell (shell 0) or a neighbour of one they flagged. A walk
@@ -586,7 +598,8 @@ def mark_candidates(origin, grid, phi_sin, phi_cos, masks, skip, q, rays, view, 
     full), so neighbours are taken in the 3 x 3 x 3 block around a cell, and
     every column of a polar row neighbours the others. ``rays``: a cone (axis
     x, y, z and half-angle) holding every ray's direction; columns not in
-    ``view`` (``columns_in_view``) are passed over.
+    ``view`` (``columns_in_view``) are passed over. ``limits``: (threads,
+    bins) uint8 scratch, one row per thread.
     """
     n_theta = grid.theta_edges.shape[0] - 1
     n_phi = grid.phi_edges.shape[0] - 1
@@ -596,19 +609,31 @@ def mark_candidates(origin, grid, phi_sin, phi_cos, masks, skip, q, rays, view, 
     for j in range(n_theta):
         pole_low |= masks[j * n_phi]
         pole_high |= masks[j * n_phi + n_phi - 1]
+    threads = limits.shape[0]
+    n_bins = limit.shape[0]
+    for block in prange((n_bins + BLOCK - 1) // BLOCK):
+        for thread in range(threads):
+            limits[thread, block * BLOCK:min(n_bins, (block + 1) * BLOCK)] = skip
     n_columns = n_theta * n_phi
     for block in prange((n_columns + BLOCK - 1) // BLOCK):
         corners = np.empty((3, MAX_CORNERS), dtype=np.float64)
+        row = limits[numba.get_thread_id()]
         for column in range(block * BLOCK, min(n_columns, (block + 1) * BLOCK)):
             if view[column]:
-                _mark_column_candidates(origin[0], origin[1], origin[2], grid, phi_sin, phi_cos,
-                                        masks, skip, q, column // n_phi, column % n_phi, below,
-                                        pole_low, pole_high, rays, corners, marked)
+                _mark_column_candidates(origin[0], origin[1], origin[2], grid, masks, skip, q,
+                                        column // n_phi, column % n_phi, below, pole_low,
+                                        pole_high, rays, corners, row)
+    for block in prange((n_bins + BLOCK - 1) // BLOCK):
+        for b in range(block * BLOCK, min(n_bins, (block + 1) * BLOCK)):
+            lowest = limits[0, b]
+            for thread in range(1, threads):
+                lowest = min(lowest, limits[thread, b])
+            limit[b] = lowest
 
 
 @jit(inline="always")
-def _mark_column_candidates(ox, oy, oz, grid, phi_sin, phi_cos, masks, skip, q, j, k, below,
-                            pole_low, pole_high, rays, corners, marked):
+def _mark_column_candidates(ox, oy, oz, grid, masks, skip, q, j, k, below, pole_low, pole_high,
+                            rays, corners, limit):
     """``mark_candidates`` for column (j, k)."""
     n_theta = grid.theta_edges.shape[0] - 1
     n_phi = grid.phi_edges.shape[0] - 1
@@ -628,7 +653,7 @@ def _mark_column_candidates(ox, oy, oz, grid, phi_sin, phi_cos, masks, skip, q, 
     candidates = grown & ~masks[j * n_phi + k] & below
     for i in range(skip):
         if (candidates >> np.uint64(i)) & one:
-            _mark_shadow(ox, oy, oz, grid, phi_sin, phi_cos, i, j, k, q, rays, corners, marked)
+            _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit)
 
 
 @jit
