@@ -139,17 +139,14 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
         return 0
     n_bins = 6 * per_side * per_side
     bins = np.empty(points.shape[0], dtype=np.int64)
-    _kernels.bin_rays(origin, points, per_side, bins)
+    coarse_bins = np.empty(points.shape[0], dtype=np.int64)
     coarse = max(per_side // SAMPLE_COARSENING, 1)
-    samples, others = _kernels.split_samples(bins, per_side, coarse)
+    _kernels.bin_rays(origin, points, per_side, coarse, bins, coarse_bins)
+    samples, others = _kernels.split_samples(coarse_bins, 6 * coarse * coarse)
     _kernels.mark_scan(origin, points, max_range, args, free, hits, samples, bins, no_marks, 0)
     if others.shape[0] == 0:
         return 0
-    # Every ray's coarse bin holds a sample.
-    face, rest = np.divmod(bins[samples], per_side * per_side)
-    bu, bv = np.divmod(rest, per_side)
-    rays = _ray_cone((face * coarse + bu * coarse // per_side) * coarse + bv * coarse // per_side,
-                     coarse)
+    rays = _ray_cone(coarse_bins[samples], coarse)  # every ray's coarse bin holds a sample
     view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
     _kernels.columns_in_view(origin, args, rays, view)
     skip = min(grid.n_rho - 1, 63)  # the masks' 64 bits

@@ -165,7 +165,7 @@ def test_a_cells_shadow_holds_every_direction_meeting_it(grid, sensor):
     for i, j, k in cells:
         points = _inside(rng, grid, i, j, k, 300)
         bins = np.empty(points.shape[0], dtype=np.int64)
-        kernels.bin_rays(origin, points, q, bins)
+        kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins))
         directions = points - origin
         directions /= np.linalg.norm(directions, axis=1)[:, None]
         axis = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
@@ -188,7 +188,7 @@ def test_the_ray_cone_holds_every_ray():
                               else (0.0, 1.0, 0.0))
         for q in (8, 101, 306):
             bins = np.empty(points.shape[0], dtype=np.int64)
-            kernels.bin_rays(origin, points, q, bins)
+            kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins))
             cone = occ._ray_cone(np.unique(bins), q)
             directions = points - origin
             directions /= np.linalg.norm(directions, axis=1)[:, None]

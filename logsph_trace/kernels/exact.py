@@ -34,7 +34,16 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .locate import BLOCK, TWO_PI, azimuth, locate, phi_zone, rho_zone, theta_zone
+from .locate import (
+    BLOCK,
+    TWO_PI,
+    azimuth,
+    locate,
+    phi_zone,
+    phi_zone_near,
+    rho_zone,
+    theta_zone,
+)
 
 
 @jit
@@ -235,8 +244,8 @@ def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, jt, jt_limit, theta_edges, the
 
 
 @jit(inline="always")
-def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
-             lookups, reuse):
+def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, grid, lookups,
+             reuse):
     """Phase 1 for phi: up to two monotone branches split at the turning point,
     or piecewise constant with a jump at the centre.
 
@@ -276,9 +285,9 @@ def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, ph
             if reuse:
                 ph2_start = lookups[7]
             else:
-                ph2_start = phi_zone(
-                    cx + turn * dx, cy + turn * dy, cz + turn * dz, phi_edges, phi_kind
-                )
+                # lookups[7] holds the ray before's zone there: a guess.
+                ph2_start = phi_zone_near(cx + turn * dx, cy + turn * dy, cz + turn * dz,
+                                          lookups[7], grid)
                 lookups[7] = ph2_start
             ph1_steps = abs(ph2_start - kp)
         ph2_steps = abs(kp_limit - ph2_start)
@@ -465,8 +474,7 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
         lookups[5] = kp_limit
         lookups[6] = kp
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
-        ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
-        lookups, reuse,
+        ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, grid, lookups, reuse,
     )
 
     if mode == BOUND:

@@ -90,7 +90,6 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     theta_edges = grid.theta_edges
     theta_full = grid.theta_full
     phi_edges = grid.phi_edges
-    phi_kind = grid.phi_kind
     n_rho = rho_sq.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
@@ -147,8 +146,7 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
         ox, oz, cx, cz, dx, dz, t_closest, jt, jt_limit, theta_edges, theta_full, lookups, False
     )
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
-        ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, phi_edges, phi_kind,
-        lookups, False,
+        ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, grid, lookups, False,
     )
     n_t = theta_times(cx, cz, dx, dz, t_closest, jt, jt_limit, th_sigma, th_steps, t_axis,
                       grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times, zones)
@@ -364,43 +362,46 @@ def _bin_of(u, q):
 
 
 @jit(parallel=True)
-def bin_rays(origin, points, q, bins):
+def bin_rays(origin, points, q, q_coarse, bins, coarse):
     """Cube-map bin of each ray's direction from ``origin`` (``q`` x ``q`` per
-    face), as ``sensor_ray`` gives it; -1 for no ray (a point at the sensor)."""
+    face, and ``q_coarse`` x ``q_coarse`` in ``coarse``); -1 for no ray (a
+    point at the sensor).
+
+    The offset to the point is binned as it is: dividing by its length, as
+    ``sensor_ray`` does, moves (u, v) by an ulp or so, well inside the 1e-12
+    that every bound on a bin's contents is widened by.
+    """
     n_rays = points.shape[0]
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            dx, dy, dz, _, _, is_ray = sensor_ray(points, row, origin[0], origin[1], origin[2],
-                                                  np.inf)
-            if is_ray:
-                face = _face_of(dx, dy, dz)
-                _, u, v = _on_face(face, dx, dy, dz)
-                bins[row] = (face * q + _bin_of(u, q)) * q + _bin_of(v, q)
-            else:
+            x = points[row, 0] - origin[0]
+            y = points[row, 1] - origin[1]
+            z = points[row, 2] - origin[2]
+            if x == 0.0 and y == 0.0 and z == 0.0:
                 bins[row] = -1
+                coarse[row] = -1
+            else:
+                face = _face_of(x, y, z)
+                _, u, v = _on_face(face, x, y, z)
+                bins[row] = (face * q + _bin_of(u, q)) * q + _bin_of(v, q)
+                coarse[row] = ((face * q_coarse + _bin_of(u, q_coarse)) * q_coarse
+                               + _bin_of(v, q_coarse))
 
 
 @jit
-def split_samples(bins, q, q_coarse):
-    """The first ray of each coarse bin (the samples), and the other rays, in order.
-
-    A coarse bin (``q_coarse`` per face side) groups the ``q`` x ``q`` bins of
-    ``bins`` whose (u, v) fall in it.
-    """
-    taken = np.zeros(6 * q_coarse * q_coarse, dtype=np.uint8)
-    samples = np.empty(bins.shape[0], dtype=np.int64)
-    others = np.empty(bins.shape[0], dtype=np.int64)
+def split_samples(coarse, n_coarse):
+    """The first ray of each coarse bin (the samples), and the other rays, in order."""
+    taken = np.zeros(n_coarse, dtype=np.uint8)
+    samples = np.empty(coarse.shape[0], dtype=np.int64)
+    others = np.empty(coarse.shape[0], dtype=np.int64)
     n_samples = 0
     n_others = 0
-    for row in range(bins.shape[0]):
-        b = bins[row]
+    for row in range(coarse.shape[0]):
+        b = coarse[row]
         if b < 0:
             continue
-        face, rest = divmod(b, q * q)
-        bu, bv = divmod(rest, q)
-        coarse = (face * q_coarse + bu * q_coarse // q) * q_coarse + bv * q_coarse // q
-        if taken[coarse] == 0:
-            taken[coarse] = 1
+        if taken[b] == 0:
+            taken[b] = 1
             samples[n_samples] = row
             n_samples += 1
         else:
@@ -417,7 +418,8 @@ def columns_in_view(origin, grid, rays, view):
 
     Seen from the sensor, a point at rho >= rho_min lies within asin(|origin|
     / rho_min) of its direction from the centre; a column's directions from
-    the centre lie within half its theta and phi widths of its middle one.
+    the centre lie within half its theta and phi widths of its middle one
+    (the bisector of its edges), at most ``half`` for the grid's widest.
     """
     n_theta = grid.theta_edges.shape[0] - 1
     n_phi = grid.phi_edges.shape[0] - 1
@@ -425,16 +427,29 @@ def columns_in_view(origin, grid, rays, view):
     oy = origin[1]
     oz = origin[2]
     parallax = math.asin(math.sqrt(ox * ox + oy * oy + oz * oz) / grid.rho_edges[0])
+    half = 0.0
+    for j in range(n_theta):
+        half = max(half, grid.theta_edges[j + 1] - grid.theta_edges[j])
+    widest_phi = 0.0
+    for k in range(n_phi):
+        widest_phi = max(widest_phi, grid.phi_edges[k + 1] - grid.phi_edges[k])
+    reach = rays[3] + 0.5 * (half + widest_phi) + parallax + 1e-9
+    least = math.cos(reach) if reach < math.pi else -2.0
     for column in prange(n_theta * n_phi):
         j = column // n_phi
         k = column % n_phi
-        theta = 0.5 * (grid.theta_edges[j] + grid.theta_edges[j + 1])
-        phi = 0.5 * (grid.phi_edges[k] + grid.phi_edges[k + 1])
-        half = 0.5 * ((grid.theta_edges[j + 1] - grid.theta_edges[j])
-                      + (grid.phi_edges[k + 1] - grid.phi_edges[k]))
-        flat = math.cos(phi)
-        view[column] = _angle(flat * math.sin(theta), math.sin(phi), flat * math.cos(theta),
-                              rays[0], rays[1], rays[2]) <= rays[3] + half + parallax + 1e-9
+        sin_t = grid.theta_sin[j] + grid.theta_sin[j + 1]
+        cos_t = grid.theta_cos[j] + grid.theta_cos[j + 1]
+        sin_p = grid.phi_sin[k] + grid.phi_sin[k + 1]
+        cos_p = grid.phi_cos[k] + grid.phi_cos[k + 1]
+        flat = math.sqrt(sin_t * sin_t + cos_t * cos_t)
+        tall = math.sqrt(sin_p * sin_p + cos_p * cos_p)
+        if flat == 0.0 or tall == 0.0:
+            view[column] = 1  # a half-turn wide: no bisector, keep it
+            continue
+        scale = cos_p / (flat * tall)
+        cosine = (scale * sin_t * rays[0] + sin_p / tall * rays[1] + scale * cos_t * rays[2])
+        view[column] = cosine >= least - 1e-12
 
 
 @jit(parallel=True)
