@@ -193,3 +193,23 @@ def test_the_ray_cone_holds_every_ray():
             directions = points - origin
             directions /= np.linalg.norm(directions, axis=1)[:, None]
             assert np.arccos(np.clip(directions @ cone[:3], -1, 1)).max() <= cone[3]
+
+
+@pytest.mark.parametrize("grid, sensor", [scan[:2] for scan in SCANS])
+def test_a_column_with_a_ray_in_it_is_in_view(grid, sensor):
+    # Points of random cells at rho >= rho_min: a cone around their
+    # directions from the sensor leaves every one of their columns in view.
+    rng = np.random.default_rng(61)
+    origin = np.asarray(sensor, dtype=np.float64)
+    for _ in range(20):
+        i, j, k = (rng.integers(0, grid.n_rho), rng.integers(0, grid.n_theta),
+                   rng.integers(0, grid.n_phi))
+        points = _inside(rng, grid, i, j, k, 50)
+        directions = points - origin
+        directions /= np.linalg.norm(directions, axis=1)[:, None]
+        axis = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
+        cone = np.r_[axis, np.arccos(np.clip(directions @ axis, -1, 1)).max()]
+        view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
+        kernels.columns_in_view(origin, grid.kernel_args(), cone, view)
+        assert view[j * grid.n_phi + k] == 1
+        assert view.mean() < 1.0 or cone[3] > 1.0  # and it does pass some columns over
