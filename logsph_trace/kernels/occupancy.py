@@ -491,6 +491,18 @@ MAX_CORNERS = 2 * (MAX_PARTS + 1) ** 2
 
 
 @jit(inline="always")
+def _split_point(edges, sines, cosines, index, step, parts):
+    """Sine and cosine of the angle ``step`` / ``parts`` of the way from edge
+    ``index`` to the next: the edges' own where the split meets them."""
+    if step == 0:
+        return sines[index], cosines[index]
+    if step == parts:
+        return sines[index + 1], cosines[index + 1]
+    angle = edges[index] + (edges[index + 1] - edges[index]) * step / parts
+    return math.sin(angle), math.cos(angle)
+
+
+@jit(inline="always")
 def _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit):
     """Lower to ``i`` the ``limit`` of every bin holding a direction from (ox, oy, oz)
     that meets cell (i, j, k).
@@ -509,10 +521,8 @@ def _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit):
     """
     r0 = grid.rho_edges[i]
     r1 = grid.rho_edges[i + 1]
-    theta0 = grid.theta_edges[j]
-    phi0 = grid.phi_edges[k]
-    width = grid.theta_edges[j + 1] - theta0
-    height = grid.phi_edges[k + 1] - phi0
+    width = grid.theta_edges[j + 1] - grid.theta_edges[j]
+    height = grid.phi_edges[k + 1] - grid.phi_edges[k]
     # Corners of a parts x parts split of the angular patch, on both spheres:
     # the finer the split, the closer the hull hugs the curved faces.
     parts = min(max(int(math.ceil((width + height) / SUBPATCH_SPAN)), 1), MAX_PARTS)
@@ -525,18 +535,11 @@ def _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit):
     c = 0
     for radius in (r0, r1):
         for a in range(parts + 1):
-            theta = theta0 + width * a / parts
-            # the edges' own sines and cosines where the split meets them
-            sin_t = grid.theta_sin[j] if a == 0 else (grid.theta_sin[j + 1] if a == parts
-                                                       else math.sin(theta))
-            cos_t = grid.theta_cos[j] if a == 0 else (grid.theta_cos[j + 1] if a == parts
-                                                       else math.cos(theta))
+            sin_t, cos_t = _split_point(grid.theta_edges, grid.theta_sin, grid.theta_cos, j, a,
+                                        parts)
             for b in range(parts + 1):
-                phi = phi0 + height * b / parts
-                sin_p = grid.phi_sin[k] if b == 0 else (grid.phi_sin[k + 1] if b == parts
-                                                        else math.sin(phi))
-                cos_p = grid.phi_cos[k] if b == 0 else (grid.phi_cos[k + 1] if b == parts
-                                                        else math.cos(phi))
+                sin_p, cos_p = _split_point(grid.phi_edges, grid.phi_sin, grid.phi_cos, k, b,
+                                            parts)
                 flat = radius * cos_p
                 corners[0, c] = flat * sin_t - ox
                 corners[1, c] = radius * sin_p - oy
