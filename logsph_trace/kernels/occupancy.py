@@ -110,17 +110,13 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
         i = 0
         if skip > 0:
             # Outside the gap rho only grows, so each sphere is crossed once:
-            # start on the last one below ``skip`` crossed before the end.
-            skip = min(skip, _last_at_or_below((t_max - t_closest0) ** 2 + h2_0, rho_sq))
-            for _ in range(n_rho + 1):
-                if skip <= 0:
-                    break
-                t_skip = t_closest0 + math.sqrt(max(rho_sq[skip] - h2_0, 0.0))
-                if t_skip < t_max * (1.0 - 1e-9):
-                    t_in = t_skip
-                    i = skip
-                    break
-                skip -= 1
+            # start on the last one up to ``skip`` crossed before the end.
+            i = min(skip, _last_at_or_below((t_max - t_closest0) ** 2 + h2_0, rho_sq))
+            before_end = t_max * (1.0 - 1e-9)
+            while i > 0 and _sphere_time(t_closest0, h2_0, rho_sq[i], True) >= before_end:
+                i -= 1
+            if i > 0:
+                t_in = _sphere_time(t_closest0, h2_0, rho_sq[i], True)
         ox += t_in * dx
         oy += t_in * dy
         oz += t_in * dz
@@ -316,9 +312,10 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
 
 # ---- The coherent scan (``occupancy._mark_off_centre``) -------------------
 # Rays from a sensor in the egocentric gap cross most of their cells near it,
-# where neighbouring rays cross the same cells. The cells below a sphere
-# ``skip`` are found from a sample of the rays, with a proof that the other
-# rays add none there; those rays are walked from that sphere on.
+# where neighbouring rays cross the same cells. A sample of the rays is walked
+# whole; each direction bin then gets a limit below which, by a proof
+# (docs/integration.md), its other rays cross only cells the samples flagged,
+# and those rays are walked from that limit's sphere on.
 #
 # Directions seen from the sensor are indexed by a cube map: face 2 * axis +
 # (1 for the negative half), the axis of the largest |component| (ties to the
@@ -476,9 +473,15 @@ def near_masks(free, words, n_rho, skip, view, masks):
 
 
 @jit(inline="always")
+def _arccos(cosine):
+    """acos of a cosine that rounding may have put just outside [-1, 1]."""
+    return math.acos(max(min(cosine, 1.0), -1.0))
+
+
+@jit(inline="always")
 def _angle(ax, ay, az, bx, by, bz):
     """Angle between unit vectors a and b."""
-    return math.acos(max(min(ax * bx + ay * by + az * bz, 1.0), -1.0))
+    return _arccos(ax * bx + ay * by + az * bz)
 
 
 # The largest angle between a cube-map face's axis and a direction of that face.
@@ -566,7 +569,7 @@ def _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit):
             axis = face // 2
             sign = 1.0 - 2.0 * (face % 2)
             along = sign * (ex if axis == 0 else (ey if axis == 1 else ez))
-            if math.acos(max(min(along, 1.0), -1.0)) > FACE_REACH + alpha:
+            if _arccos(along) > FACE_REACH + alpha:
                 continue  # the cap misses this face's directions
         u_min = np.inf
         u_max = -np.inf
@@ -720,8 +723,6 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
                 i = index % n_rho
                 _update(log_odds, i * n_columns + index // n_rho, (bits & HIT) != 0,
                         (bits & FREE) != 0, log_hit, log_miss, log_min, log_max)
-
-
 
 
 @jit(inline="always")
