@@ -271,6 +271,62 @@ def sensor_ray(points, row, ox, oy, oz, max_range):
     return x / length, y / length, z / length, min(length, max_range), length <= max_range, True
 
 
+# An end point farther than this from every face of its cell (a fraction of
+# rho_max + |sensor|, the exact kernel's scale) is in that cell by the walk too:
+# the walk's crossing times are off by ~1e-15 of the scale, its tolerances 1e-9.
+END_MARGIN = 1e-6
+
+
+@jit(inline="always")
+def _end_cell(x, y, z, margin, grid, guesses):
+    """Zone and cell of the end point (x, y, z) when it lies clear of every face.
+
+    Returns (-1, -1) in the egocentric gap, (i, cell) with ``cell`` the
+    column-major index of cell (i, j, k), and (n_rho, -1) when the point is
+    within ``margin`` of a face of its cell (or of the gap), or beyond rho_max:
+    then only a walk knows. ``guesses``: the zones (i, j, k) of the ray
+    before's end, tried first and updated.
+    """
+    rho_edges = grid.rho_edges
+    n_rho = rho_edges.shape[0] - 1
+    n_phi = grid.phi_edges.shape[0] - 1
+    r = math.sqrt(x * x + y * y + z * z)
+    if r < rho_edges[0] - margin:
+        return -1, -1
+    i = min(max(guesses[0], 0), n_rho - 1)
+    while i > 0 and r < rho_edges[i]:
+        i -= 1
+    while i < n_rho - 1 and r >= rho_edges[i + 1]:
+        i += 1
+    if not (r - rho_edges[i] > margin and rho_edges[i + 1] - r > margin):
+        return n_rho, -1
+    guesses[0] = i
+    # The angular faces: a point's distance to the plane of a theta edge is
+    # r_xz sin(theta - edge), to a phi cone r sin(phi - edge) (or more).
+    j = guesses[1]
+    for attempt in range(2):
+        if 0 <= j < grid.theta_edges.shape[0] - 1 and (
+                grid.theta_edges[j + 1] - grid.theta_edges[j] < math.pi
+                and x * grid.theta_cos[j] - z * grid.theta_sin[j] > margin
+                and z * grid.theta_sin[j + 1] - x * grid.theta_cos[j + 1] > margin):
+            break
+        if attempt == 1:
+            return n_rho, -1
+        j = theta_zone(x, z, grid.theta_edges, grid.theta_kind)
+    guesses[1] = j
+    flat = math.sqrt(x * x + z * z)
+    k = guesses[2]
+    for attempt in range(2):
+        if 0 <= k < n_phi and (y * grid.phi_cos[k] - flat * grid.phi_sin[k] > margin
+                               and flat * grid.phi_sin[k + 1] - y * grid.phi_cos[k + 1] > margin):
+            break
+        if attempt == 1:
+            return n_rho, -1
+        k = phi_zone(x, y, z, grid.phi_edges, grid.phi_kind)
+    guesses[2] = k
+    return i, (j * n_phi + k) * n_rho + i
+
+
 @jit(parallel=True)
 def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, skip):
     """Walk the ray from ``origin`` to every point of a scan (see ``walk_ray``).
@@ -282,7 +338,13 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
     ``rows``: the rays to walk (empty: all). A ray may start on sphere
     ``limit`` of its direction bin (``bins``), ``skip`` at most (see
     ``_mark_off_centre``); with ``skip == 0`` every ray is walked whole.
-    Returns how many rays were let start beyond the gap's sphere.
+
+    Every cell a ray crosses below its start sphere is flagged already, so
+    a ray that ends below it, clear of its end cell's faces (``_end_cell``),
+    adds only its hit: it is not walked at all.
+
+    Returns how many rays were let start beyond the gap's sphere, and how
+    many of those were not walked.
     """
     n_rays = points.shape[0] if rows.shape[0] == 0 else rows.shape[0]
     ox = origin[0]
@@ -292,22 +354,33 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
     jt = theta_zone(ox, oz, grid.theta_edges, grid.theta_kind)
     kp = phi_zone(ox, oy, oz, grid.phi_edges, grid.phi_kind)
     size = grid_scratch_size(grid)
+    margin = END_MARGIN * (grid.rho_edges[-1] + math.sqrt(ox * ox + oy * oy + oz * oz))
     skipped = 0
+    ended = 0
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         row_free = free[numba.get_thread_id()]
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
+        guesses = np.zeros(3, dtype=np.int64)
         for n in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             row = n if rows.shape[0] == 0 else rows[n]
             dx, dy, dz, distance, is_hit, is_ray = sensor_ray(points, row, ox, oy, oz, max_range)
             hits[row] = -1
             if is_ray:
                 start = min(np.int64(limit[bins[row]]), skip) if skip > 0 else 0
+                skipped += start > 0
+                if start > 0:
+                    i, cell = _end_cell(ox + distance * dx, oy + distance * dy,
+                                        oz + distance * dz, margin, grid, guesses)
+                    if i < start:
+                        if is_hit:
+                            hits[row] = cell
+                        ended += 1
+                        continue
                 hits[row] = walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, ir, jt, kp, grid,
                                       times, zones, lookups, row_free, start)
-                skipped += start > 0
-    return skipped
+    return skipped, ended
 
 
 # ---- The coherent scan (``occupancy._mark_off_centre``) -------------------
