@@ -124,13 +124,15 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
        last one below it they cross: every cell they cross below it was
        flagged by a sample. Near the sensor that is most cells; a ray far
        from the silhouettes of nearer things starts close to its end. One
-       that ends below its limit adds only its hit cell, found without a
-       walk when its end point is clear of the cell's faces.
+       that ends below its limit adds only its hit cell, and one that stays
+       in one column from there adds that column's shells: when its end
+       point is clear of the cell's faces, neither is walked.
 
     ``free`` and ``words``: the per-thread flags (``apply_scan``); ``hits``
     gets each ray's hit cell. Returns how many rays were let start beyond
-    the gap's sphere, and how many of those were not walked at all (0, 0
-    when the scan was walked ray by ray).
+    the gap's sphere, how many of those ended below it and how many stayed
+    in one column (the last two not walked; 0, 0, 0 when the scan was
+    walked ray by ray).
     """
     args = grid.kernel_args()
     no_rows = np.empty(0, dtype=np.int64)
@@ -139,7 +141,7 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
     if per_side == 0:
         _kernels.mark_scan(origin, points, max_range, args, free, hits, no_rows, no_rows,
                            no_marks, 0)
-        return 0, 0
+        return 0, 0, 0
     n_bins = 6 * per_side * per_side
     bins = np.empty(points.shape[0], dtype=np.int64)
     coarse_bins = np.empty(points.shape[0], dtype=np.int64)
@@ -148,7 +150,7 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
     samples, others = _kernels.split_samples(coarse_bins, 6 * coarse * coarse)
     _kernels.mark_scan(origin, points, max_range, args, free, hits, samples, bins, no_marks, 0)
     if others.shape[0] == 0:
-        return 0, 0
+        return 0, 0, 0
     rays = _ray_cone(coarse_bins[samples], coarse)  # every ray's coarse bin holds a sample
     view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
     _kernels.columns_in_view(origin, args, rays, view)
@@ -158,9 +160,9 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
     limit = np.empty(n_bins, dtype=np.uint8)
     _kernels.mark_candidates(origin, args, masks, skip, per_side, rays, view,
                              np.empty((free.shape[0], n_bins), dtype=np.uint8), limit)
-    started, ended = _kernels.mark_scan(origin, points, max_range, args, free, hits, others,
-                                        bins, limit, skip)
-    return int(started), int(ended)
+    started, ended, straight = _kernels.mark_scan(origin, points, max_range, args, free, hits,
+                                                  others, bins, limit, skip)
+    return int(started), int(ended), int(straight)
 
 
 class OccupancyGrid:

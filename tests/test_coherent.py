@@ -64,15 +64,15 @@ def coherent_from_1000_rays(monkeypatch):
 
 
 def _flags(grid, sensor, points, max_range=np.inf):
-    """Run ``_mark_off_centre``; return its flag union, hits, and the rays it let
-    start beyond the gap and those it did not walk."""
+    """Run ``_mark_off_centre``; return its flag union, hits, and its counts of
+    rays let start beyond the gap, ending below that and staying in a column."""
     n_cells = int(np.prod(grid.shape))
     words = np.zeros((numba.get_num_threads(), -(-n_cells // 8)), dtype=np.uint64)
     free = words.view(np.uint8)
     hits = np.empty(points.shape[0], dtype=np.int64)
-    skipped, ended = occ._mark_off_centre(grid, np.asarray(sensor, dtype=np.float64), points,
-                                          max_range, free, hits, words)
-    return np.any(free[:, :n_cells] != 0, axis=0), hits, skipped, ended
+    counts = occ._mark_off_centre(grid, np.asarray(sensor, dtype=np.float64), points,
+                                  max_range, free, hits, words)
+    return np.any(free[:, :n_cells] != 0, axis=0), hits, *counts
 
 
 @pytest.mark.parametrize("grid, sensor, forward, focal", SCANS)
@@ -85,9 +85,10 @@ def test_coherent_scan_equals_walking_every_ray(grid, sensor, forward, focal,
         np.testing.assert_array_equal(got.log_odds,
                                       _reference_log_odds(grid, points, sensor, max_range))
     # The scan took the shortcut for most rays, the same way on any thread count.
-    flags, hits, skipped, ended = _flags(grid, sensor, points)
+    flags, hits, skipped, ended, straight = _flags(grid, sensor, points)
     assert skipped > 0.25 * points.shape[0]
     assert ended > 0.02 * points.shape[0]  # and some were not walked at all
+    assert straight > 0.02 * points.shape[0]
     threads = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
@@ -96,7 +97,7 @@ def test_coherent_scan_equals_walking_every_ray(grid, sensor, forward, focal,
         numba.set_num_threads(threads)
     np.testing.assert_array_equal(one[0], flags)
     np.testing.assert_array_equal(one[1], hits)
-    assert one[2:] == (skipped, ended)
+    assert one[2:] == (skipped, ended, straight)
 
 
 @pytest.mark.parametrize("kind", ["centre", "y_axis", "corner"])
@@ -143,7 +144,8 @@ def _check_ends(face, offsets):
         got = lt.OccupancyGrid(grid).integrate(points, sensor, max_range=max_range)
         np.testing.assert_array_equal(got.log_odds,
                                       _reference_log_odds(grid, points, sensor, max_range))
-    assert _flags(grid, sensor, points)[3] > 0.1 * points.shape[0]
+    counts = _flags(grid, sensor, points)[3:]
+    assert counts[0] > 0.1 * points.shape[0] and counts[1] > 0.02 * points.shape[0]
 
 
 @pytest.mark.parametrize("face", ["rho", "theta", "phi"])
@@ -180,7 +182,7 @@ def test_the_real_frame_off_the_centre_equals_walking_every_ray(monkeypatch):
     monkeypatch.setattr(occ, "COHERENT_MIN_RAYS", points.shape[0] + 1)
     plain = lt.OccupancyGrid(grid).integrate(points, sensor).log_odds
     np.testing.assert_array_equal(coherent, plain)
-    assert _flags(grid, sensor, points)[2:] == (0, 0)  # the plain walk
+    assert _flags(grid, sensor, points)[2:] == (0, 0, 0)  # the plain walk
     monkeypatch.setattr(occ, "COHERENT_MIN_RAYS", 1000)
     assert _flags(grid, sensor, points)[2] > 0.8 * points.shape[0]
 

@@ -278,53 +278,106 @@ END_MARGIN = 1e-6
 
 
 @jit(inline="always")
-def _end_cell(x, y, z, margin, grid, guesses):
-    """Zone and cell of the end point (x, y, z) when it lies clear of every face.
+def _clear_of_theta(x, z, j, margin, grid):
+    """Whether (x, ., z) lies in azimuthal sector ``j`` (narrower than a half
+    turn) farther than ``margin`` from both its planes: the distance to a
+    plane is r_xz sin(theta - edge)."""
+    edges = grid.theta_edges
+    return (0 <= j < edges.shape[0] - 1 and edges[j + 1] - edges[j] < math.pi
+            and x * grid.theta_cos[j] - z * grid.theta_sin[j] > margin
+            and z * grid.theta_sin[j + 1] - x * grid.theta_cos[j + 1] > margin)
 
-    Returns (-1, -1) in the egocentric gap, (i, cell) with ``cell`` the
-    column-major index of cell (i, j, k), and (n_rho, -1) when the point is
-    within ``margin`` of a face of its cell (or of the gap), or beyond rho_max:
-    then only a walk knows. ``guesses``: the zones (i, j, k) of the ray
-    before's end, tried first and updated.
+
+@jit(inline="always")
+def _clear_of_phi(y, flat, k, margin, grid):
+    """Whether a point at height ``y`` and distance ``flat`` from the y axis
+    lies in elevation band ``k`` farther than ``margin`` from both its cones
+    (r sin(phi - edge), at most the distance to a cone)."""
+    return (0 <= k < grid.phi_edges.shape[0] - 1
+            and y * grid.phi_cos[k] - flat * grid.phi_sin[k] > margin
+            and flat * grid.phi_sin[k + 1] - y * grid.phi_cos[k + 1] > margin)
+
+
+@jit(inline="always")
+def _end_zones(x, y, z, margin, grid, guesses):
+    """Zones of the end point (x, y, z) when it lies clear of every face.
+
+    Returns -1 in the egocentric gap, its shell i when it lies farther than
+    ``margin`` from every face of its cell, with (i, j, k) in ``guesses``,
+    and n_rho when it does not (or lies beyond rho_max): then only a walk
+    knows. ``guesses`` hold the ray before's end zones, tried first.
     """
     rho_edges = grid.rho_edges
     n_rho = rho_edges.shape[0] - 1
-    n_phi = grid.phi_edges.shape[0] - 1
     r = math.sqrt(x * x + y * y + z * z)
     if r < rho_edges[0] - margin:
-        return -1, -1
+        return -1
     i = min(max(guesses[0], 0), n_rho - 1)
     while i > 0 and r < rho_edges[i]:
         i -= 1
     while i < n_rho - 1 and r >= rho_edges[i + 1]:
         i += 1
     if not (r - rho_edges[i] > margin and rho_edges[i + 1] - r > margin):
-        return n_rho, -1
-    guesses[0] = i
-    # The angular faces: a point's distance to the plane of a theta edge is
-    # r_xz sin(theta - edge), to a phi cone r sin(phi - edge) (or more).
+        return n_rho
     j = guesses[1]
-    for attempt in range(2):
-        if 0 <= j < grid.theta_edges.shape[0] - 1 and (
-                grid.theta_edges[j + 1] - grid.theta_edges[j] < math.pi
-                and x * grid.theta_cos[j] - z * grid.theta_sin[j] > margin
-                and z * grid.theta_sin[j + 1] - x * grid.theta_cos[j + 1] > margin):
-            break
-        if attempt == 1:
-            return n_rho, -1
+    if not _clear_of_theta(x, z, j, margin, grid):
         j = theta_zone(x, z, grid.theta_edges, grid.theta_kind)
-    guesses[1] = j
+        if not _clear_of_theta(x, z, j, margin, grid):
+            return n_rho
     flat = math.sqrt(x * x + z * z)
     k = guesses[2]
-    for attempt in range(2):
-        if 0 <= k < n_phi and (y * grid.phi_cos[k] - flat * grid.phi_sin[k] > margin
-                               and flat * grid.phi_sin[k + 1] - y * grid.phi_cos[k + 1] > margin):
-            break
-        if attempt == 1:
-            return n_rho, -1
+    if not _clear_of_phi(y, flat, k, margin, grid):
         k = phi_zone(x, y, z, grid.phi_edges, grid.phi_kind)
+        if not _clear_of_phi(y, flat, k, margin, grid):
+            return n_rho
+    guesses[0] = i
+    guesses[1] = j
     guesses[2] = k
-    return i, (j * n_phi + k) * n_rho + i
+    return i
+
+
+@jit(inline="always")
+def _above_between(g1, slope1, g2, slope2, length, margin):
+    """Whether a convex function with values ``g1``, ``g2`` (both above
+    ``margin``) and slopes ``slope1``, ``slope2`` at the ends of an interval of
+    ``length`` stays above ``margin`` on it: its tangents at the ends are
+    below it, so its minimum is at least where they meet."""
+    if slope1 >= 0.0 or slope2 <= 0.0:
+        return True  # monotone: the minimum is at an end
+    along = (g1 - g2 + slope2 * length) / (slope2 - slope1)
+    return g1 + slope1 * along > margin
+
+
+@jit(inline="always")
+def _stays_in_column(x1, y1, z1, x2, y2, z2, dx, dy, dz, length, j, k, margin, grid):
+    """Whether the segment from (x1, y1, z1) along (dx, dy, dz) to an end point
+    (x2, y2, z2) clear of column (j, k), ``length`` long, stays clear of it.
+
+    A theta sector narrower than a half turn is convex: both ends clear is
+    enough. The side phi >= a of a band is convex for a > 0, and phi <= b
+    for b < 0. Across the other sides, r sin(phi - edge) (the ends' margins
+    in ``_clear_of_phi``) is a convex function along the segment
+    (``_above_between``).
+    """
+    if not _clear_of_theta(x1, z1, j, margin, grid):
+        return False
+    flat1 = math.sqrt(x1 * x1 + z1 * z1)
+    if not _clear_of_phi(y1, flat1, k, margin, grid):
+        return False
+    flat2 = math.sqrt(x2 * x2 + z2 * z2)
+    away1 = (x1 * dx + z1 * dz) / flat1  # d flat / dt
+    away2 = (x2 * dx + z2 * dz) / flat2
+    sin_a = grid.phi_sin[k]
+    cos_a = grid.phi_cos[k]
+    if sin_a <= 0.0 and not _above_between(
+            y1 * cos_a - flat1 * sin_a, dy * cos_a - away1 * sin_a,
+            y2 * cos_a - flat2 * sin_a, dy * cos_a - away2 * sin_a, length, margin):
+        return False
+    sin_b = grid.phi_sin[k + 1]
+    cos_b = grid.phi_cos[k + 1]
+    return sin_b < 0.0 or _above_between(
+        flat1 * sin_b - y1 * cos_b, away1 * sin_b - dy * cos_b,
+        flat2 * sin_b - y2 * cos_b, away2 * sin_b - dy * cos_b, length, margin)
 
 
 @jit(parallel=True)
@@ -340,11 +393,13 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
     ``_mark_off_centre``); with ``skip == 0`` every ray is walked whole.
 
     Every cell a ray crosses below its start sphere is flagged already, so
-    a ray that ends below it, clear of its end cell's faces (``_end_cell``),
-    adds only its hit: it is not walked at all.
+    a ray that ends below it, clear of its end cell's faces (``_end_zones``),
+    adds only its hit, and one that stays in its end cell's column from the
+    start sphere on (``_stays_in_column``) that column's shells: neither is
+    walked.
 
     Returns how many rays were let start beyond the gap's sphere, and how
-    many of those were not walked.
+    many of those ended below it and stayed in one column (not walked).
     """
     n_rays = points.shape[0] if rows.shape[0] == 0 else rows.shape[0]
     ox = origin[0]
@@ -354,9 +409,12 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
     jt = theta_zone(ox, oz, grid.theta_edges, grid.theta_kind)
     kp = phi_zone(ox, oy, oz, grid.phi_edges, grid.phi_kind)
     size = grid_scratch_size(grid)
-    margin = END_MARGIN * (grid.rho_edges[-1] + math.sqrt(ox * ox + oy * oy + oz * oz))
+    n_rho = grid.rho_edges.shape[0] - 1
+    n_phi = grid.phi_edges.shape[0] - 1
+    margin = END_MARGIN * (grid.rho_edges[n_rho] + math.sqrt(ox * ox + oy * oy + oz * oz))
     skipped = 0
     ended = 0
+    straight = 0
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         row_free = free[numba.get_thread_id()]
         times = np.empty((3, size), dtype=np.float64)
@@ -367,20 +425,37 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
             row = n if rows.shape[0] == 0 else rows[n]
             dx, dy, dz, distance, is_hit, is_ray = sensor_ray(points, row, ox, oy, oz, max_range)
             hits[row] = -1
-            if is_ray:
-                start = min(np.int64(limit[bins[row]]), skip) if skip > 0 else 0
-                skipped += start > 0
-                if start > 0:
-                    i, cell = _end_cell(ox + distance * dx, oy + distance * dy,
-                                        oz + distance * dz, margin, grid, guesses)
-                    if i < start:
+            if not is_ray:
+                continue
+            start = min(np.int64(limit[bins[row]]), skip) if skip > 0 else 0
+            skipped += start > 0
+            if start > 0:
+                x = ox + distance * dx
+                y = oy + distance * dy
+                z = oz + distance * dz
+                i = _end_zones(x, y, z, margin, grid, guesses)
+                cell = ((guesses[1] * n_phi + guesses[2]) * n_rho + i)
+                if i < start:
+                    if is_hit and i >= 0:
+                        hits[row] = cell
+                    ended += 1
+                    continue
+                if i < n_rho:
+                    t_closest, h2, _, _, _ = line_geometry(ox, oy, oz, dx, dy, dz)
+                    t_in = _sphere_time(t_closest, h2, grid.rho_sq[start], True)
+                    if _stays_in_column(ox + t_in * dx, oy + t_in * dy, oz + t_in * dz, x, y, z,
+                                        dx, dy, dz, distance - t_in, guesses[1], guesses[2],
+                                        margin, grid):
+                        # Whole shells from the start sphere to the end cell.
+                        for shell in range(start, i + (not is_hit)):
+                            row_free[cell - i + shell] = 1
                         if is_hit:
                             hits[row] = cell
-                        ended += 1
+                        straight += 1
                         continue
-                hits[row] = walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, ir, jt, kp, grid,
-                                      times, zones, lookups, row_free, start)
-    return skipped, ended
+            hits[row] = walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, ir, jt, kp, grid,
+                                 times, zones, lookups, row_free, start)
+    return skipped, ended, straight
 
 
 # ---- The coherent scan (``occupancy._mark_off_centre``) -------------------
