@@ -11,7 +11,18 @@ bounded size.
   batch's expected size (a copy of the few rays' segments traced so far);
   at the end they shrink in place to the exact size (``resized``), so the
   result holds no spare room.
-* **Many threads** (``run_waves``): the rays are taken in waves. A
+* **Two threads** (``run_halves``): the threads meet in the middle. One
+  traces the back half of the batch in order, appending up from an anchor;
+  the other the front half from its last ray back, each block of rays
+  placed just below the rays after it, down from the same anchor. Every
+  segment is written once, to its final place, by the thread that traced
+  it (which also takes the page faults): no copy, no pre-touched output.
+  The anchor and the reservation come from upper bounds on a sample of the
+  rays, with a margin; the result is views of the stretch written, and the
+  reserved pages around it are never touched (address space, not memory).
+  Should a half run out of room (a sample off by more than the margin) or
+  the reservation not fit in memory, the batch goes to the waves.
+* **More threads** (``run_waves``): the rays are taken in waves. A
   wave gives each thread a contiguous chunk of rays, sized from the segments
   per ray so far to fill ``WAVE_FILL`` of a fixed scratch region
   (``WAVE_SEGMENTS`` per thread), traced there (``exact.trace_chunks``); the
@@ -22,9 +33,8 @@ bounded size.
   quarter spare). The output is allocated once from the first wave's
   segments per ray with 3% to spare, grows in place if that was too little,
   and shrinks to the exact size at the end.
-* The exact method and the Amanatides-Woo baseline run on both (their
-  ``*_span`` and ``*_chunks`` kernels), so their timings compare like for
-  like. The paper's baselines (``run_csr``) take a count pass, a prefix sum
+* The exact method and the Amanatides-Woo baseline run on all three
+  (their ``BatchKernels``), so their timings compare like for like. The paper's baselines (``run_csr``) take a count pass, a prefix sum
   and a fill pass of one ``*_rows`` kernel.
 * **Cones** (``trace_regions``): one region per chunk, sized by a bound pass
   (``exact.bound_counts``: each ray's set-up, no stepping), so none can
@@ -41,6 +51,7 @@ or region, so the output does not depend on the number of threads.
 import contextlib
 import threading
 import time
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -197,16 +208,41 @@ WAVE_SEGMENTS = 1 << 17
 WAVE_FILL = 0.75
 
 
-def run_batch(span, span_inputs, chunks, chunk_inputs, n_rays, worst, parallel, buffers=None):
-    """One appending pass (``run_serial``) or waves on all threads (``run_waves``).
+class BatchKernels(NamedTuple):
+    """One method's kernels for the batch paths (``exact.trace_*``, ``cartesian.box_*``).
 
-    Both run the same per-ray code, so the outputs are identical. A batch
-    too small to split, or one thread, takes the serial pass.
+    ``span``: one thread, appending (``run_serial``); ``chunks``: waves
+    (``run_waves``); ``halves`` and ``bounds``: two threads meeting in the
+    middle (``run_halves``). ``bounds(*bound_inputs, out)`` writes an upper
+    bound on each ray's segments.
+    """
+
+    span: object
+    chunks: object
+    halves: object
+    bounds: object
+
+
+def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, parallel, buffers=None):
+    """One appending pass (``run_serial``), two halves (``run_halves``) or waves (``run_waves``).
+
+    All run the same per-ray code, so the outputs are identical. A batch too
+    small to split, or one thread, takes the serial pass; two threads take
+    the halves, which copy nothing, unless their reservation would not fit
+    in memory; more threads take the waves.
     """
     threads = numba.get_num_threads() if parallel else 1
     if threads == 1 or n_rays < PARALLEL_MIN_RAYS:
-        return run_serial(span, span_inputs, n_rays, worst, buffers)
-    return run_waves(chunks, chunk_inputs, n_rays, worst, threads, buffers)
+        return run_serial(kernels.span, span_inputs, n_rays, worst, buffers)
+    if threads == 2:
+        traces = run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers)
+        if traces is not None:
+            return traces
+    return run_waves(kernels.chunks, inputs, n_rays, worst, threads, buffers)
+
+
+EXACT_KERNELS = BatchKernels(_exact.trace_span, _exact.trace_chunks, _exact.trace_halves,
+                             _exact.bound_counts)
 
 
 def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
@@ -216,8 +252,74 @@ def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
     scratch = (np.empty((3, size), dtype=np.float64), np.empty((3, size), dtype=np.int64),
                np.empty(8, dtype=np.int64))
     inputs = (origins, directions, t_max, args)
-    return run_batch(_exact.trace_span, inputs + scratch, _exact.trace_chunks, inputs,
+    return run_batch(EXACT_KERNELS, inputs + scratch, inputs, (origins, directions, args),
                      origins.shape[0], int(_exact.max_segments(*grid.shape)), parallel, buffers)
+
+
+# run_halves reserves this much more than the sampled bounds promise; the
+# bounds are upper bounds (1.0-1.6x the segments on the benchmark's rays), so
+# a half outgrows its room only when the sample is off by more than this.
+HALVES_MARGIN = 1.25
+# The front thread copies each block of segments once more (out of the block
+# scratch), about a tenth of its tracing time on the benchmark machine, so it
+# gets a little less than half of the work.
+HALVES_FRONT_SHARE = 1 / 2.1
+
+
+def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
+    """Two threads that meet in the middle: no copy of the output, no pre-touched pages.
+
+    The front half of the batch is traced by one thread, last ray first, each
+    block of rays placed just below the rays after it, down from an anchor;
+    the back half by the other thread, in order, up from the anchor. The
+    segments then lie contiguous and in ray order between where the front
+    thread stopped and the back one ended: each written once, to its final
+    place, by the thread that traced it, which also takes its page faults.
+    The result is views of that stretch; the reserved pages outside it are
+    never touched, so they cost address space, not memory.
+
+    Where to split and how much room each half needs come from upper bounds
+    (``kernels.bounds``: a ray's set-up, no stepping) on a random sample of
+    the rays, scaled up and given ``HALVES_MARGIN`` to spare. Returns None
+    when the reservation would not fit in the available memory (before
+    tracing) or a half ran out of room (after: the caller then traces the
+    batch again in waves; it takes a sample off by more than the margin).
+    """
+    start = time.perf_counter()
+    origins, directions, *rest = bound_inputs
+    rows = np.unique(np.random.default_rng(0).integers(0, n_rays, 1024 + n_rays // 256))
+    bounds = np.empty(rows.shape[0], dtype=np.int64)
+    kernels.bounds(origins[rows], directions[rows], *rest, bounds)
+    mass = np.cumsum(bounds) * (HALVES_MARGIN * n_rays / rows.shape[0])
+    half = min(max(int(np.searchsorted(mass, HALVES_FRONT_SHARE * mass[-1])), 1),
+               rows.shape[0] - 1)
+    split = min(max(int(rows[half]), 1), n_rays - 1)
+    anchor = int(mass[half - 1]) + worst
+    length = anchor + int(mass[-1] - mass[half - 1]) + worst
+    available = validate.available_memory()
+    if available is not None and length * SEGMENT_BYTES > available:
+        return None
+    start = lap("bound", start)
+    offsets = _ray_offsets(n_rays, buffers)
+    held = None if buffers is None else buffers.segments()
+    if held is not None and held[0].shape[0] >= length:
+        segments = held
+    else:
+        segments = segment_arrays(length)
+        if buffers is not None:
+            buffers.keep(segments)
+    offsets[split] = anchor
+    start = lap("allocate", start)
+    ends, reached = kernels.halves(split, anchor, segments[0].shape[0], *inputs, *segments,
+                                   offsets)
+    start = lap("trace", start)
+    if reached[0] != 0 or reached[1] != n_rays:
+        return None
+    first, end = int(ends[0]), int(ends[1])
+    offsets -= first
+    traces = Traces(offsets, *(a[first:end] for a in segments))
+    lap("other", start)
+    return traces
 
 
 def run_exact_parallel(grid, origins, directions, t_max, args, threads):

@@ -3,9 +3,12 @@
 import numpy as np
 
 from . import _validate as validate
-from ._batching import run_batch
+from ._batching import BatchKernels, run_batch
 from .kernels import cartesian as _kernels
 from .traces import Traces
+
+BOX_KERNELS = BatchKernels(_kernels.box_span, _kernels.box_chunks, _kernels.box_halves,
+                           _kernels.box_bounds)
 
 
 class CartesianGrid:
@@ -42,8 +45,7 @@ class CartesianGrid:
         origins, directions = validate.rays(origins, directions)
         inputs = (origins, directions, self.low, self.voxel_size, self._shape)
         worst = int(self._shape.sum())
-        return run_batch(_kernels.box_span, inputs, _kernels.box_chunks, inputs,
-                         origins.shape[0], worst, parallel)
+        return run_batch(BOX_KERNELS, inputs, inputs, inputs, origins.shape[0], worst, parallel)
 
 
 __all__ = ["CartesianGrid", "Traces"]

@@ -39,10 +39,13 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     parallel : bool
         Trace rays on all Numba threads (``prange``). The output is identical
         to the serial run. For ``"exact"`` every ray is traced once: serially
-        by appending; in parallel in waves, each thread tracing a chunk of
-        rays into a scratch region of its own, the chunks then copied to their
-        place in parallel. The returned arrays own exactly their data. The
-        baselines use a count pass and a fill pass.
+        by appending; on two threads from the middle of the batch outwards,
+        each segment written straight to its place (the arrays are then views
+        of a larger reservation whose other pages are never touched, so they
+        take no memory); on more threads in waves, each thread tracing a
+        chunk of rays into a scratch region of its own, the chunks then copied
+        to their place in parallel. The baselines use a count pass and a
+        fill pass.
     default_t : float
         ``"bisect"`` only: the first step of every search, in length units
         (paper: 1.5531 m).

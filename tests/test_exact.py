@@ -174,5 +174,6 @@ def test_every_parallel_path_equals_the_serial_one(monkeypatch, wave_segments):
     for result, want in zip(results, [serial, reversed_serial, serial]):
         for name in ("offsets", "cells", "t_enter", "t_exit"):
             np.testing.assert_array_equal(getattr(result, name), getattr(want, name))
-            array = getattr(result, name)
-            assert array.base is None  # owns exactly its data: no spare room kept alive
+            # The waves' arrays own exactly their data: no spare room kept alive
+            # (two threads take the halves instead: tests/test_halves.py).
+            assert result is results[0] or getattr(result, name).base is None

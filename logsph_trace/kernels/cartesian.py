@@ -11,6 +11,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
+from .exact import copy_segments
 
 
 @jit
@@ -135,6 +136,52 @@ def box_span(first, last, origins, directions, low, size, shape, cells, t_enter,
                               used)
         offsets[row + 1] = used
     return used, last
+
+
+@jit(parallel=True)
+def box_bounds(origins, directions, low, size, shape, bounds):
+    """``box_bound`` of every ray, into ``bounds`` (``exact.bound_counts``'s contract)."""
+    for row in prange(origins.shape[0]):
+        bounds[row] = box_bound(origins, directions, row, low, size, shape)
+
+
+@jit
+def box_span_back(first, last, origins, directions, low, size, shape, ray_cells, ray_enter,
+                  ray_exit, cells, t_enter, t_exit, offsets, top, floor):
+    """One thread: rays last-1 down to first, each below the one after it
+    (``exact.trace_span_back``'s contract)."""
+    worst = shape[0] + shape[1] + shape[2]
+    for row in range(last - 1, first - 1, -1):
+        if top - floor < worst:
+            return top, row + 1
+        count = trace_box_ray(origins, directions, row, low, size, shape, ray_cells, ray_enter,
+                              ray_exit, 0)
+        top -= count
+        copy_segments(ray_cells, ray_enter, ray_exit, 0, count, cells, t_enter, t_exit, top)
+        offsets[row] = top
+    return top, first
+
+
+@jit(parallel=True)
+def box_halves(split, anchor, limit, origins, directions, low, size, shape, cells, t_enter,
+               t_exit, offsets):
+    """Two threads meeting at ``anchor`` (``exact.trace_halves``'s contract)."""
+    worst = shape[0] + shape[1] + shape[2]
+    ends = np.empty(2, dtype=np.int64)
+    reached = np.empty(2, dtype=np.int64)
+    for half in prange(2):
+        if half == 0:
+            ends[0], reached[0] = box_span_back(
+                0, split, origins, directions, low, size, shape,
+                np.empty((worst, 3), dtype=np.int32), np.empty(worst, dtype=np.float64),
+                np.empty(worst, dtype=np.float64), cells, t_enter, t_exit, offsets, anchor, 0,
+            )
+        else:
+            ends[1], reached[1] = box_span(
+                split, origins.shape[0], origins, directions, low, size, shape, cells, t_enter,
+                t_exit, offsets, anchor, limit,
+            )
+    return ends, reached
 
 
 @jit(parallel=True)

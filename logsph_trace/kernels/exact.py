@@ -654,14 +654,22 @@ def gather_chunks(starts, regions, ends, offsets, loose_cells, loose_enter, loos
     for chunk in prange(n_chunks):
         source = regions[chunk]
         shift = targets[chunk] - source
-        for seg in range(ends[chunk] - source):
-            cells[targets[chunk] + seg, 0] = loose_cells[source + seg, 0]
-            cells[targets[chunk] + seg, 1] = loose_cells[source + seg, 1]
-            cells[targets[chunk] + seg, 2] = loose_cells[source + seg, 2]
-            t_enter[targets[chunk] + seg] = loose_enter[source + seg]
-            t_exit[targets[chunk] + seg] = loose_exit[source + seg]
+        copy_segments(loose_cells, loose_enter, loose_exit, source, ends[chunk] - source, cells,
+                      t_enter, t_exit, targets[chunk])
         for row in range(starts[chunk] + 1, starts[chunk + 1] + 1):
             offsets[row] += shift
+
+
+@jit(inline="always")
+def copy_segments(from_cells, from_enter, from_exit, source, count, cells, t_enter, t_exit,
+                  target):
+    """Copy ``count`` segments from row ``source`` of the first arrays to row ``target``."""
+    for seg in range(count):
+        cells[target + seg, 0] = from_cells[source + seg, 0]
+        cells[target + seg, 1] = from_cells[source + seg, 1]
+        cells[target + seg, 2] = from_cells[source + seg, 2]
+        t_enter[target + seg] = from_enter[source + seg]
+        t_exit[target + seg] = from_exit[source + seg]
 
 
 @jit
@@ -690,6 +698,89 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
                           t_enter, t_exit, used, FULL)
         offsets[row + 1] = used
     return used, last
+
+
+# The front half of ``trace_halves`` traces this many segments' worth of rays
+# (at ``max_segments`` each) at a time into a scratch block before copying them
+# below the rays after them: one copy of a few dozen rays runs several times
+# faster than one per ray, whose stores step down through memory.
+BACK_BLOCK_SEGMENTS = 1 << 15
+
+
+@jit
+def trace_span_back(first, last, origins, directions, t_max, grid, times, zones, lookups,
+                    block_cells, block_enter, block_exit, cells, t_enter, t_exit, offsets, top,
+                    floor):
+    """One thread: trace rays first..last-1 placed down from ``top``, the last ray highest.
+
+    ``trace_span`` mirrored, for the front half of a batch that meets the back
+    half at ``top`` (``trace_halves``). Rays go in blocks, from the last block
+    down; a block's rays are traced in order into the block scratch (room for
+    ``max_segments`` each) and copied to end where the block after it starts.
+    ``offsets[row]`` gets where ray ``row`` starts (``offsets[last]`` must be
+    ``top``). Stops before a block that might not fit above ``floor``; returns
+    (new ``top``, ``reached``: rows first..reached-1 were not traced).
+    """
+    worst = max_segments(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
+                         grid.phi_edges.shape[0] - 1)
+    rays = block_enter.shape[0] // worst
+    end = last
+    while end > first:
+        begin = max(first, end - min(rays, (top - floor) // worst))
+        if begin == end:
+            return top, end
+        # trace_span writes offsets[begin + 1:end + 1] (ends in the block), and
+        # offsets[end] becomes ``top`` again once shifted.
+        count, _ = trace_span(begin, end, origins, directions, t_max, grid, times, zones, lookups,
+                              block_cells, block_enter, block_exit, offsets, 0,
+                              block_enter.shape[0])
+        top -= count
+        copy_segments(block_cells, block_enter, block_exit, 0, count, cells, t_enter, t_exit, top)
+        offsets[begin] = 0
+        for row in range(begin, end + 1):
+            offsets[row] += top
+        end = begin
+    return top, first
+
+
+@jit(parallel=True)
+def trace_halves(split, anchor, limit, origins, directions, t_max, grid, cells, t_enter, t_exit,
+                 offsets):
+    """Two threads that write every segment straight to its final place.
+
+    Rays ``split - 1`` down to 0 are placed below ``anchor`` (``trace_span_back``,
+    down to row 0 of the arrays), rays ``split`` on from ``anchor`` up to
+    ``limit`` (``trace_span``); the two halves meet at ``anchor``, so the
+    batch's segments end up contiguous, in ray order, between where the front
+    half stopped and the back half ended (``_batching.run_halves``).
+    ``offsets`` holds positions in the arrays: ``offsets[split]`` must be
+    ``anchor``. Returns ([start of the segments, end of them], [rows
+    0..reached[0]-1 not traced, first row not traced]): every row is traced
+    when ``reached`` is ``[0, n_rays]``.
+    """
+    n_rays = origins.shape[0]
+    size = grid_scratch_size(grid)
+    worst = max_segments(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
+                         grid.phi_edges.shape[0] - 1)
+    ends = np.empty(2, dtype=np.int64)
+    reached = np.empty(2, dtype=np.int64)
+    for half in prange(2):
+        times = np.empty((3, size), dtype=np.float64)
+        zones = np.empty((3, size), dtype=np.int64)
+        lookups = np.empty(8, dtype=np.int64)
+        if half == 0:
+            block = max(1, BACK_BLOCK_SEGMENTS // worst) * worst
+            ends[0], reached[0] = trace_span_back(
+                0, split, origins, directions, t_max, grid, times, zones, lookups,
+                np.empty((block, 3), dtype=np.int32), np.empty(block, dtype=np.float64),
+                np.empty(block, dtype=np.float64), cells, t_enter, t_exit, offsets, anchor, 0,
+            )
+        else:
+            ends[1], reached[1] = trace_span(
+                split, n_rays, origins, directions, t_max, grid, times, zones, lookups, cells,
+                t_enter, t_exit, offsets, anchor, limit,
+            )
+    return ends, reached
 
 
 @jit(parallel=True)
