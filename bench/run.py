@@ -8,8 +8,9 @@ Prints a table and writes ``bench/results/traversal.json`` (and ``.md``).
 Machines are noisy: the two kernels are timed in alternating rounds of the
 same run and the figure that matters is their ratio. Each timing is the best
 of ``--repeats`` rounds of ``trace_many`` (output arrays included). Both
-kernels batch the same way: one appending pass on one thread, waves of
-chunks on many; per thread count the table gives the time in each phase.
+kernels batch the same way: one appending pass on one thread, two halves
+meeting in the middle on two, waves of chunks on more; per thread count the
+table gives the time in each phase.
 """
 
 import argparse
@@ -93,9 +94,9 @@ def measure(n_rays, cells, repeats, thread_counts):
             "speedup_over_one_thread": one / run["seconds"],
             "phases_s": run["phases"],
             # What runs on one thread whatever the thread count: Python between
-            # the kernels and the final shrink, against the one-thread time.
-            "serial_part_of_one_thread": (run["phases"].get("other", 0.0)
-                                          + run["phases"].get("shrink", 0.0)) / one,
+            # the kernels, the halves' sampled bounds and the final shrink,
+            # against the one-thread time.
+            "serial_part_of_one_thread": sum(run["phases"].get(p, 0.0) for p in SERIAL) / one,
         }
 
     exact = [summary("exact", t) for t in thread_counts]
@@ -113,7 +114,8 @@ def measure(n_rays, cells, repeats, thread_counts):
     }
 
 
-PHASES = ("trace", "allocate", "gather", "shrink", "other")
+PHASES = ("bound", "trace", "allocate", "gather", "shrink", "other")
+SERIAL = ("bound", "shrink", "other")
 
 
 def table(result, first_call):
@@ -145,7 +147,7 @@ def table(result, first_call):
                          f"| {row['speedup_over_one_thread']:.2f}x | {phases} "
                          f"| {100 * row['serial_part_of_one_thread']:.1f}% |")
     lines += ["", "speed-up: over the same call on 1 thread; serial part: the phases that run "
-              "on one thread whatever the thread count (shrink, other), as a share of the "
+              "on one thread whatever the thread count (bound, shrink, other), as a share of the "
               "one-thread time; out=TraceBuffers: the same arrays reused every call"]
     if first_call:
         lines += [

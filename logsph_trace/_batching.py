@@ -1,8 +1,8 @@
 """The memory strategy for batches: how traced segments reach their arrays.
 
 A trace's length is unknown before it is traced. Every path keeps a batch's
-peak memory close to its output: the output arrays, plus a scratch of
-bounded size.
+peak resident memory close to its output: the output arrays, plus a scratch
+of bounded size.
 
 * **One thread** (``run_serial``): rays are traced in order, each
   appending to numpy arrays (numpy, not Numba, allocates them: it asks the OS
@@ -34,8 +34,9 @@ bounded size.
   segments per ray with 3% to spare, grows in place if that was too little,
   and shrinks to the exact size at the end.
 * The exact method and the Amanatides-Woo baseline run on all three
-  (their ``BatchKernels``), so their timings compare like for like. The paper's baselines (``run_csr``) take a count pass, a prefix sum
-  and a fill pass of one ``*_rows`` kernel.
+  (their ``BatchKernels``), so their timings compare like for like. The
+  paper's baselines (``run_csr``) take a count pass, a prefix sum and a
+  fill pass of one ``*_rows`` kernel.
 * **Cones** (``trace_regions``): one region per chunk, sized by a bound pass
   (``exact.bound_counts``: each ray's set-up, no stepping), so none can
   overflow; their segments are read once, by the aggregation.
@@ -214,13 +215,18 @@ class BatchKernels(NamedTuple):
     ``span``: one thread, appending (``run_serial``); ``chunks``: waves
     (``run_waves``); ``halves`` and ``bounds``: two threads meeting in the
     middle (``run_halves``). ``bounds(*bound_inputs, out)`` writes an upper
-    bound on each ray's segments.
+    bound on each ray's segments. ``front_share``: the share of the bounds'
+    sum that the halves give the front thread. It copies each block of
+    segments once more (out of its block scratch), so it gets less than
+    half; how much less depends on what that copy adds to the method's
+    tracing, measured per method where its kernels are named.
     """
 
     span: object
     chunks: object
     halves: object
     bounds: object
+    front_share: float
 
 
 def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, parallel, buffers=None):
@@ -241,8 +247,11 @@ def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, paralle
     return run_waves(kernels.chunks, inputs, n_rays, worst, threads, buffers)
 
 
+# The exact method's front thread spends about 15% more than the back one on
+# the same rays (0.465 of the work: 92.6-92.9 ms a call; 0.476: 93.5-93.6; 0.49:
+# 96.1; 100,000 rays of bench.run on 2 threads).
 EXACT_KERNELS = BatchKernels(_exact.trace_span, _exact.trace_chunks, _exact.trace_halves,
-                             _exact.bound_counts)
+                             _exact.bound_counts, 1 / 2.15)
 
 
 def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
@@ -260,10 +269,8 @@ def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
 # bounds are upper bounds (1.0-1.6x the segments on the benchmark's rays), so
 # a half outgrows its room only when the sample is off by more than this.
 HALVES_MARGIN = 1.25
-# The front thread copies each block of segments once more (out of the block
-# scratch), about a tenth of its tracing time on the benchmark machine, so it
-# gets a little less than half of the work.
-HALVES_FRONT_SHARE = 1 / 2.1
+# Rays run_halves samples for their bounds, plus one in 512.
+HALVES_SAMPLES = 512
 
 
 def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
@@ -287,15 +294,20 @@ def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
     """
     start = time.perf_counter()
     origins, directions, *rest = bound_inputs
-    rows = np.unique(np.random.default_rng(0).integers(0, n_rays, 1024 + n_rays // 256))
-    bounds = np.empty(rows.shape[0], dtype=np.int64)
+    # One random ray from each of ``samples`` equal strata: in order, spread evenly.
+    samples = min(n_rays, HALVES_SAMPLES + n_rays // 512)
+    strata = np.linspace(0, n_rays, samples + 1).astype(np.int64)
+    rows = strata[:-1] + (np.random.default_rng(0).random(samples)
+                          * (strata[1:] - strata[:-1])).astype(np.int64)
+    bounds = np.empty(samples, dtype=np.int64)
     kernels.bounds(origins[rows], directions[rows], *rest, bounds)
-    mass = np.cumsum(bounds) * (HALVES_MARGIN * n_rays / rows.shape[0])
-    half = min(max(int(np.searchsorted(mass, HALVES_FRONT_SHARE * mass[-1])), 1),
-               rows.shape[0] - 1)
-    split = min(max(int(rows[half]), 1), n_rays - 1)
-    anchor = int(mass[half - 1]) + worst
-    length = anchor + int(mass[-1] - mass[half - 1]) + worst
+    # The bounds up to each stratum's end, scaled to its rays, with the margin.
+    mass = np.cumsum(bounds * (strata[1:] - strata[:-1])) * HALVES_MARGIN
+    cut = min(max(int(np.searchsorted(mass, kernels.front_share * mass[-1])), 1),
+              samples - 1)
+    split = int(strata[cut])
+    anchor = int(mass[cut - 1]) + worst
+    length = anchor + int(mass[-1] - mass[cut - 1]) + worst
     available = validate.available_memory()
     if available is not None and length * SEGMENT_BYTES > available:
         return None
