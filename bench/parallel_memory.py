@@ -1,9 +1,17 @@
-"""Peak memory and time of a parallel trace_many against its output (issue 11).
+"""Peak memory and time of a parallel trace_many against its output (issues 11 and 12).
 
 Run from a checkout: ``python bench/parallel_memory.py [N_RAYS]`` (default 300,000 random
-rays on the 128^3 grid of bench.run). Prints the best of two serial and two parallel calls,
-tracemalloc's peak over one parallel call divided by the output's bytes, and the bytes the
-result keeps alive (its arrays' bases) divided by the output's bytes.
+rays on the 128^3 grid of bench.run). For the serial pass, the public parallel call (two
+halves on two threads, waves on more) and the waves forced (at least three chunks), it prints
+the best time of two calls and, over one more call, as multiples of the output's bytes:
+
+* resident: the growth of the process's peak resident memory (Linux's ``VmHWM``, restarted
+  through ``/proc/self/clear_refs``), what the issue's memory target is about;
+* allocated: tracemalloc's peak, which counts address space reserved but never touched;
+* held: the bytes the result's arrays keep allocated (their bases).
+
+Resident figures include the pages at the output's edges (huge pages of 2 MiB) and, for
+the halves, the front thread's block scratch.
 """
 
 import sys
@@ -12,34 +20,70 @@ import tracemalloc
 
 sys.path.insert(0, ".")  # the checkout this is run from, not an installed copy
 
+import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 import logsph_trace as lt  # noqa: E402
+from logsph_trace import _batching, _validate  # noqa: E402
+
+
+def status(field):
+    """A ``/proc/self/status`` figure (``VmRSS``, ``VmHWM``) in bytes."""
+    with open("/proc/self/status") as lines:
+        for line in lines:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) * 1024
+    raise KeyError(field)
+
+
+def resident_growth(call):
+    """(result, growth of peak resident memory during ``call()``), or (result, None)."""
+    try:
+        before = status("VmRSS")
+        with open("/proc/self/clear_refs", "w") as clear_refs:
+            clear_refs.write("5")
+    except OSError:
+        return call(), None
+    result = call()
+    return result, status("VmHWM") - before
 
 
 def main(n_rays):
     grid = lt.Grid(0.1, 10.0, 128, 128, 128)
     rng = np.random.default_rng(1)
-    origins = rng.uniform(-8, 8, (n_rays, 3))
-    directions = rng.normal(size=(n_rays, 3))
-    lt.trace_many(grid, origins[:2000], directions[:2000], parallel=True)  # compile
-    best = {}
-    for parallel in (False, True, False, True):
-        start = time.perf_counter()
-        traces = lt.trace_many(grid, origins, directions, parallel=parallel)
-        best[parallel] = min(best.get(parallel, np.inf), time.perf_counter() - start)
-    arrays = lambda t: (t.offsets, t.cells, t.t_enter, t.t_exit)  # noqa: E731
-    output = sum(a.nbytes for a in arrays(traces))
-    del traces
-    tracemalloc.start()
-    traces = lt.trace_many(grid, origins, directions, parallel=True)
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    held = sum((a if a.base is None else a.base).nbytes for a in arrays(traces))
-    print(f"serial {best[False] * 1e3:.0f} ms  parallel {best[True] * 1e3:.0f} ms  "
-          f"x{best[False] / best[True]:.2f}  "
-          f"ns/voxel par {best[True] / traces.cells.shape[0] * 1e9:.1f}  "
-          f"peak/output {peak / output:.3f}  held/output {held / output:.3f}")
+    origins, directions = _validate.rays(rng.uniform(-8, 8, (n_rays, 3)),
+                                         rng.normal(size=(n_rays, 3)))
+    far = np.full(n_rays, np.inf)
+    chunks = max(3, numba.get_num_threads())
+    paths = {
+        "serial": lambda: lt.trace_many(grid, origins, directions, parallel=False),
+        "parallel": lambda: lt.trace_many(grid, origins, directions, parallel=True),
+        f"waves ({chunks} chunks)": lambda: _batching.run_exact_parallel(
+            grid, origins, directions, far, grid.kernel_args(), chunks),
+    }
+    print(f"{n_rays:,} rays, 128^3 cells, {numba.get_num_threads()} threads")
+    for name, call in paths.items():
+        call()  # compile, scratch
+        best = min(_timed(call) for _ in range(2))
+        traces, grown = resident_growth(call)
+        arrays = (traces.offsets, traces.cells, traces.t_enter, traces.t_exit)
+        output = sum(a.nbytes for a in arrays)
+        held = sum((a if a.base is None else a.base).nbytes for a in arrays)
+        del traces, arrays
+        tracemalloc.start()
+        call()
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        resident = "n/a" if grown is None else f"{grown / output:.3f}"
+        print(f"{name:>18}: {best * 1e3:6.0f} ms  output {output / 2**20:.0f} MiB  "
+              f"resident/output {resident}  allocated/output {peak / output:.3f}  "
+              f"held/output {held / output:.3f}")
+
+
+def _timed(call):
+    start = time.perf_counter()
+    call()
+    return time.perf_counter() - start
 
 
 if __name__ == "__main__":
