@@ -215,18 +215,13 @@ class BatchKernels(NamedTuple):
     ``span``: one thread, appending (``run_serial``); ``chunks``: waves
     (``run_waves``); ``halves`` and ``bounds``: two threads meeting in the
     middle (``run_halves``). ``bounds(*bound_inputs, out)`` writes an upper
-    bound on each ray's segments. ``front_share``: the share of the bounds'
-    sum that the halves give the front thread. It copies each block of
-    segments once more (out of its block scratch), so it gets less than
-    half; how much less depends on what that copy adds to the method's
-    tracing, measured per method where its kernels are named.
+    bound on each ray's segments.
     """
 
     span: object
     chunks: object
     halves: object
     bounds: object
-    front_share: float
 
 
 def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, parallel, buffers=None):
@@ -247,11 +242,8 @@ def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, paralle
     return run_waves(kernels.chunks, inputs, n_rays, worst, threads, buffers)
 
 
-# The exact method's front thread spends about 15% more than the back one on
-# the same rays (0.465 of the work: 92.6-92.9 ms a call; 0.476: 93.5-93.6; 0.49:
-# 96.1; 100,000 rays of bench.run on 2 threads).
 EXACT_KERNELS = BatchKernels(_exact.trace_span, _exact.trace_chunks, _exact.trace_halves,
-                             _exact.bound_counts, 1 / 2.15)
+                             _exact.bound_counts)
 
 
 def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
@@ -269,6 +261,13 @@ def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
 # bounds are upper bounds (1.0-1.6x the segments on the benchmark's rays), so
 # a half outgrows its room only when the sample is off by more than this.
 HALVES_MARGIN = 1.25
+# The front thread copies each block of segments once more (out of its block
+# scratch), so it gets less than half of the bounds' sum. On the exact method
+# it spends about 15% more than the back thread on the same rays (100,000
+# rays of bench.run on 2 threads, best of 12 calls in one run: 0.465 of the
+# work 92.6-92.9 ms; 0.476 93.5-93.6; 0.49 96.1). Amanatides-Woo, memory-bound
+# on two threads there, runs the same from 0.42 to 0.48 (54.4-57.5 ms).
+HALVES_FRONT_SHARE = 1 / 2.15
 # Rays run_halves samples for their bounds, plus one in 512.
 HALVES_SAMPLES = 512
 
@@ -303,7 +302,7 @@ def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
     kernels.bounds(origins[rows], directions[rows], *rest, bounds)
     # The bounds up to each stratum's end, scaled to its rays, with the margin.
     mass = np.cumsum(bounds * (strata[1:] - strata[:-1])) * HALVES_MARGIN
-    cut = min(max(int(np.searchsorted(mass, kernels.front_share * mass[-1])), 1),
+    cut = min(max(int(np.searchsorted(mass, HALVES_FRONT_SHARE * mass[-1])), 1),
               samples - 1)
     split = int(strata[cut])
     anchor = int(mass[cut - 1]) + worst

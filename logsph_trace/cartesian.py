@@ -7,11 +7,8 @@ from ._batching import BatchKernels, run_batch
 from .kernels import cartesian as _kernels
 from .traces import Traces
 
-# An Amanatides-Woo step costs a third of an exact one, so the front thread's
-# copy weighs more: 0.42 of the work (65.4 ms a call; 0.44: 69.6; 0.465: 68.8;
-# 0.5: 73.3; 100,000 rays of bench.run on 2 threads).
 BOX_KERNELS = BatchKernels(_kernels.box_span, _kernels.box_chunks, _kernels.box_halves,
-                           _kernels.box_bounds, 0.42)
+                           _kernels.box_bounds)
 
 
 class CartesianGrid:

@@ -17,8 +17,17 @@ def assert_same(result, want):
         np.testing.assert_array_equal(getattr(result, name), getattr(want, name))
 
 
-@pytest.mark.parametrize("parallel", [False, True])
-def test_reused_buffers_give_the_fresh_result_on_every_call(monkeypatch, parallel):
+def _halves(grid, origins, directions, buffers):
+    """The two-thread path into ``buffers``, on any machine."""
+    o, d = _validate.rays(origins, directions)
+    args = grid.kernel_args()
+    return _batching.run_halves(_batching.EXACT_KERNELS, (o, d, np.full(len(o), np.inf), args),
+                                (o, d, args), len(o), int(_exact.max_segments(*grid.shape)),
+                                buffers)
+
+
+@pytest.mark.parametrize("path", ["serial", "parallel", "halves"])
+def test_reused_buffers_give_the_fresh_result_on_every_call(monkeypatch, path):
     # Batches of growing and shrinking sizes through one set of buffers: the
     # first call finds them empty, later ones too small (they grow) or big
     # enough (reused as they are); every result equals a fresh trace.
@@ -30,7 +39,11 @@ def test_reused_buffers_give_the_fresh_result_on_every_call(monkeypatch, paralle
     batches = [random_rays(rng, grid, n) for n in (700, 3000, 40, 1200)]
     for origins, directions in batches + batches[1:2]:
         want = lt.trace_many(grid, origins, directions, parallel=False)
-        got = lt.trace_many(grid, origins, directions, parallel=parallel, out=buffers)
+        if path == "halves":
+            got = _halves(grid, origins, directions, buffers)
+        else:
+            got = lt.trace_many(grid, origins, directions, parallel=path == "parallel",
+                                out=buffers)
         assert_same(got, want)
         assert np.shares_memory(got.t_enter, buffers.t_enter)
         capacities.append(buffers.capacity)

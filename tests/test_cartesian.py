@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from oracle import box_oracle_trace, compare
 
-from logsph_trace.cartesian import CartesianGrid
+from logsph_trace.cartesian import BOX_KERNELS, CartesianGrid
 from logsph_trace.kernels import cartesian as _kernels
 
 
@@ -36,10 +36,11 @@ def test_bad_box():
 
 
 @pytest.mark.parametrize("wave_segments", [1 << 17, 50])
-def test_parallel_waves_equal_the_serial_pass(monkeypatch, wave_segments):
+def test_parallel_waves_and_halves_equal_the_serial_pass(monkeypatch, wave_segments):
     # The baseline batches like the exact method: one appending pass on one
-    # thread, waves of chunks on many. With 50 segments of scratch per thread
-    # every chunk overflows after a ray or two and the output grows many times.
+    # thread, two halves on two, waves of chunks on more. With 50 segments of
+    # scratch per thread every chunk of a wave overflows after a ray or two
+    # and the output grows many times.
     import numba
 
     from logsph_trace import _batching, _validate
@@ -60,13 +61,14 @@ def test_parallel_waves_equal_the_serial_pass(monkeypatch, wave_segments):
         numba.set_num_threads(previous)
     o, d = _validate.rays(origins, directions)
     inputs = (o, d, box.low, box.voxel_size, box._shape)
-    results.append(_batching.run_waves(_kernels.box_chunks, inputs, len(o), sum(box.shape), 5))
+    waves = _batching.run_waves(_kernels.box_chunks, inputs, len(o), sum(box.shape), 5)
+    # The two-thread path, on any machine (tests/test_halves.py for the exact method).
+    halves = _batching.run_halves(BOX_KERNELS, inputs, inputs, len(o), sum(box.shape))
     assert serial.cells.shape[0] > 5 * len(origins)
-    for result in results:
+    for result in results + [waves, halves]:
         for name in ("offsets", "cells", "t_enter", "t_exit"):
             np.testing.assert_array_equal(getattr(result, name), getattr(serial, name))
-            # The waves own their arrays (two threads take the halves: views).
-            assert result is results[0] or getattr(result, name).base is None
+            assert getattr(waves, name).base is None  # the waves own exactly their data
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 1), (7, 8, 9), (32, 32, 32)])

@@ -16,7 +16,6 @@ from singular import CLASSES, singular_rays
 
 import logsph_trace as lt
 from logsph_trace import _batching, _validate
-from logsph_trace.cartesian import BOX_KERNELS, CartesianGrid
 from logsph_trace.kernels import exact as _exact
 
 FIELDS = ("offsets", "cells", "t_enter", "t_exit")
@@ -89,20 +88,6 @@ def test_halves_of_small_batches(n_rays):
     assert_same(exact_halves(grid, origins, directions), want)
 
 
-def test_the_box_baseline_takes_the_same_halves():
-    box = CartesianGrid((-1.0, -1.0, -1.0), (1.0, 2.0, 1.5), (13, 17, 11))
-    rng = np.random.default_rng(11)
-    origins = rng.uniform(-1.5, 1.5, (4000, 3))
-    directions = rng.normal(size=(4000, 3))
-    origins[:500] = [0.0, 0.0, 50.0]  # far away, pointing out: no voxels
-    directions[:500] = [0.0, 0.0, 1.0]
-    want = box.trace_many(origins, directions, parallel=False)
-    o, d = _validate.rays(origins, directions)
-    inputs = (o, d, box.low, box.voxel_size, box._shape)
-    got = _batching.run_halves(BOX_KERNELS, inputs, inputs, len(o), sum(box.shape))
-    assert_same(got, want)
-
-
 @pytest.mark.parametrize("margin", [0.05, 0.6])
 def test_a_half_that_runs_out_of_room_hands_the_batch_to_the_waves(monkeypatch, margin):
     # With the sampled bounds scaled far down, the front half (0.05: both)
@@ -130,24 +115,6 @@ def test_a_reservation_that_does_not_fit_in_memory_is_not_made(monkeypatch):
         lt.trace_many(grid, origins, directions, parallel=True)
     monkeypatch.setattr(_validate, "available_memory", lambda: None)
     assert_same(lt.trace_many(grid, origins, directions, parallel=True), want)
-
-
-def test_halves_write_into_reused_buffers():
-    # Batches of growing and shrinking sizes through one set of buffers; each
-    # result is a view of them and equals a fresh trace.
-    grid = GRIDS["uniform_partial_wide"]()
-    rng = np.random.default_rng(14)
-    buffers = lt.TraceBuffers()
-    capacities = []
-    batches = [random_rays(rng, grid, n) for n in (700, 3000, 40, 1200)]
-    for origins, directions in batches + batches[1:2]:
-        want = lt.trace_many(grid, origins, directions, parallel=False)
-        got = exact_halves(grid, origins, directions, buffers=buffers)
-        assert_same(got, want)
-        assert np.shares_memory(got.t_enter, buffers.t_enter)
-        capacities.append(buffers.capacity)
-    assert capacities == sorted(capacities)  # they grow, never shrink
-    assert capacities[-1] == capacities[-2]  # the same batch again: no new memory
 
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two threads")

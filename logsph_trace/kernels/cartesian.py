@@ -11,7 +11,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .exact import copy_segments
+from .exact import BACK_BLOCK_SEGMENTS, place_block
 
 
 @jit
@@ -146,19 +146,22 @@ def box_bounds(origins, directions, low, size, shape, bounds):
 
 
 @jit
-def box_span_back(first, last, origins, directions, low, size, shape, ray_cells, ray_enter,
-                  ray_exit, cells, t_enter, t_exit, offsets, top, floor):
-    """One thread: rays last-1 down to first, each below the one after it
+def box_span_back(first, last, origins, directions, low, size, shape, block_cells, block_enter,
+                  block_exit, cells, t_enter, t_exit, offsets, top, floor):
+    """One thread: rays first..last-1 placed down from ``top`` in blocks
     (``exact.trace_span_back``'s contract)."""
     worst = shape[0] + shape[1] + shape[2]
-    for row in range(last - 1, first - 1, -1):
-        if top - floor < worst:
-            return top, row + 1
-        count = trace_box_ray(origins, directions, row, low, size, shape, ray_cells, ray_enter,
-                              ray_exit, 0)
-        top -= count
-        copy_segments(ray_cells, ray_enter, ray_exit, 0, count, cells, t_enter, t_exit, top)
-        offsets[row] = top
+    rays = block_enter.shape[0] // worst
+    end = last
+    while end > first:
+        begin = max(first, end - min(rays, (top - floor) // worst))
+        if begin == end:
+            return top, end
+        count, _ = box_span(begin, end, origins, directions, low, size, shape, block_cells,
+                            block_enter, block_exit, offsets, 0, block_enter.shape[0])
+        top = place_block(block_cells, block_enter, block_exit, count, cells, t_enter, t_exit,
+                          offsets, begin, end, top)
+        end = begin
     return top, first
 
 
@@ -171,10 +174,11 @@ def box_halves(split, anchor, limit, origins, directions, low, size, shape, cell
     reached = np.empty(2, dtype=np.int64)
     for half in prange(2):
         if half == 0:
+            block = max(1, BACK_BLOCK_SEGMENTS // worst) * worst
             ends[0], reached[0] = box_span_back(
                 0, split, origins, directions, low, size, shape,
-                np.empty((worst, 3), dtype=np.int32), np.empty(worst, dtype=np.float64),
-                np.empty(worst, dtype=np.float64), cells, t_enter, t_exit, offsets, anchor, 0,
+                np.empty((block, 3), dtype=np.int32), np.empty(block, dtype=np.float64),
+                np.empty(block, dtype=np.float64), cells, t_enter, t_exit, offsets, anchor, 0,
             )
         else:
             ends[1], reached[1] = box_span(

@@ -729,18 +729,31 @@ def trace_span_back(first, last, origins, directions, t_max, grid, times, zones,
         begin = max(first, end - min(rays, (top - floor) // worst))
         if begin == end:
             return top, end
-        # trace_span writes offsets[begin + 1:end + 1] (ends in the block), and
-        # offsets[end] becomes ``top`` again once shifted.
         count, _ = trace_span(begin, end, origins, directions, t_max, grid, times, zones, lookups,
                               block_cells, block_enter, block_exit, offsets, 0,
                               block_enter.shape[0])
-        top -= count
-        copy_segments(block_cells, block_enter, block_exit, 0, count, cells, t_enter, t_exit, top)
-        offsets[begin] = 0
-        for row in range(begin, end + 1):
-            offsets[row] += top
+        top = place_block(block_cells, block_enter, block_exit, count, cells, t_enter, t_exit,
+                          offsets, begin, end, top)
         end = begin
     return top, first
+
+
+@jit(inline="always")
+def place_block(block_cells, block_enter, block_exit, count, cells, t_enter, t_exit, offsets,
+                begin, end, top):
+    """Copy a block's ``count`` segments to end at ``top``; return where they start.
+
+    Rays begin..end-1 were traced into the block by a ``*_span``, which wrote
+    ``offsets[begin + 1:end + 1]`` as ends within the block; they become
+    positions in the arrays (``offsets[end]`` becomes ``top`` again), and
+    ``offsets[begin]`` gets the block's start.
+    """
+    start = top - count
+    copy_segments(block_cells, block_enter, block_exit, 0, count, cells, t_enter, t_exit, start)
+    offsets[begin] = 0
+    for row in range(begin, end + 1):
+        offsets[row] += start
+    return start
 
 
 @jit(parallel=True)
