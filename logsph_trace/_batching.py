@@ -285,8 +285,9 @@ def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
     never touched, so they cost address space, not memory.
 
     Where to split and how much room each half needs come from upper bounds
-    (``kernels.bounds``: a ray's set-up, no stepping) on a random sample of
-    the rays, scaled up and given ``HALVES_MARGIN`` to spare. Returns None
+    (``kernels.bounds``: a ray's set-up, no stepping) on a sample of the
+    rays (one at random from each of equal strata), scaled up and given
+    ``HALVES_MARGIN`` to spare. ``n_rays`` must be at least 2. Returns None
     when the reservation would not fit in the available memory (before
     tracing) or a half ran out of room (after: the caller then traces the
     batch again in waves; it takes a sample off by more than the margin).
