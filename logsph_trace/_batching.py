@@ -199,8 +199,12 @@ def run_serial(span, inputs, n_rays, worst, buffers=None):
     return _result(offsets, (cells, t_enter, t_exit), used, buffers, start)
 
 
-# Below this many rays a batch is traced on one thread even with parallel=True.
-PARALLEL_MIN_RAYS = 512
+# Below this many rays a batch is traced on one thread even with parallel=True:
+# waking the threads for the sampled bounds and the halves costs about what a
+# second thread saves (bench.run's grid, 2 threads, best of 200 calls: 1,000
+# rays 1.88 ms against 1.78 serial; 2,000 3.30-3.36 against 3.30; 3,000
+# 4.62-4.68 against 4.71; 4,000 5.38-5.98 against 6.25-6.33).
+PARALLEL_MIN_RAYS = 2048
 # Scratch per thread for a wave of the parallel path, in segments (28 bytes each):
 # a few MB, so a wave's copy to the output reads from cache.
 WAVE_SEGMENTS = 1 << 17
@@ -268,8 +272,14 @@ HALVES_MARGIN = 1.25
 # work 92.6-92.9 ms; 0.476 93.5-93.6; 0.49 96.1). Amanatides-Woo, memory-bound
 # on two threads there, runs the same from 0.42 to 0.48 (54.4-57.5 ms).
 HALVES_FRONT_SHARE = 1 / 2.15
-# Rays run_halves samples for their bounds, plus one in 512.
+# Rays run_halves samples for their bounds, plus one in 512; at most one in 16
+# (a ray's set-up costs about a quarter of tracing it on bench.run's grid),
+# but 64 at least.
 HALVES_SAMPLES = 512
+# A reservation at least this large is checked against the available memory
+# first (reading it costs about 0.1 ms); a smaller one that cannot be had
+# fails in numpy with a MemoryError of its own.
+HALVES_CHECKED_BYTES = 1 << 28
 
 
 def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
@@ -295,7 +305,7 @@ def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
     start = time.perf_counter()
     origins, directions, *rest = bound_inputs
     # One random ray from each of ``samples`` equal strata: in order, spread evenly.
-    samples = min(n_rays, HALVES_SAMPLES + n_rays // 512)
+    samples = min(n_rays, max(64, min(n_rays // 16, HALVES_SAMPLES + n_rays // 512)))
     strata = np.linspace(0, n_rays, samples + 1).astype(np.int64)
     rows = strata[:-1] + (np.random.default_rng(0).random(samples)
                           * (strata[1:] - strata[:-1])).astype(np.int64)
@@ -308,9 +318,10 @@ def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
     split = int(strata[cut])
     anchor = int(mass[cut - 1]) + worst
     length = anchor + int(mass[-1] - mass[cut - 1]) + worst
-    available = validate.available_memory()
-    if available is not None and length * SEGMENT_BYTES > available:
-        return None
+    if length * SEGMENT_BYTES >= HALVES_CHECKED_BYTES:
+        available = validate.available_memory()
+        if available is not None and length * SEGMENT_BYTES > available:
+            return None
     start = lap("bound", start)
     offsets = _ray_offsets(n_rays, buffers)
     held = None if buffers is None else buffers.segments()

@@ -107,6 +107,10 @@ def test_a_reservation_that_does_not_fit_in_memory_is_not_made(monkeypatch):
     grid = GRIDS["log_full"]()
     origins, directions = random_rays(np.random.default_rng(13), grid, 2000)
     want = lt.trace_many(grid, origins, directions, parallel=False)
+    # Only a large reservation is checked (reading the figure costs ~0.1 ms),
+    # and only a large batch is split: both thresholds down to this one.
+    monkeypatch.setattr(_batching, "HALVES_CHECKED_BYTES", 0)
+    monkeypatch.setattr(_batching, "PARALLEL_MIN_RAYS", 512)
     monkeypatch.setattr(_validate, "available_memory", lambda: 10_000)
     assert exact_halves(grid, origins, directions) is None
     monkeypatch.setattr(numba, "get_num_threads", lambda: 2)
