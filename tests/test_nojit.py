@@ -70,3 +70,28 @@ def test_the_cache_switch_turns_numba_caching_off():
         out = subprocess.run([sys.executable, "-c", probe], env=env, check=True,
                              capture_output=True, text=True, timeout=300).stdout
         assert out.split() == want.split(), out
+
+
+def test_serial_kernels_borrow_their_arrays():
+    """Serial kernels run without Numba's runtime, so a call counts no references
+    (``_jit.jit``); only those that allocate, sort or return an array keep it."""
+    import importlib
+    import pkgutil
+
+    import numba
+
+    from logsph_trace import kernels
+
+    keep = {"bisect_rows", "box_bases", "cells_of_points", "components", "split_samples",
+            "thibaudeau_ray", "thibaudeau_rows"}
+    seen = set()
+    for info in pkgutil.iter_modules(kernels.__path__):
+        module = importlib.import_module(f"logsph_trace.kernels.{info.name}")
+        for name, value in vars(module).items():
+            value = getattr(value, "serial", value)  # the serial build of a jit_twins pair
+            if (isinstance(value, numba.core.registry.CPUDispatcher)
+                    and value.__module__ == module.__name__):
+                seen.add(name)
+                assert value.targetoptions.get("_nrt", True) == (name in keep), name
+    assert {"trace_ray", "trace_box_ray", "walk_ray", "locate"} <= seen
+    assert keep <= seen

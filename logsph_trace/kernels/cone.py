@@ -58,7 +58,7 @@ def _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
     return low_j[0], low_k[0], span_k, base
 
 
-@jit
+@jit(runtime=True)
 def box_bases(low_j, high_j, low_k, high_k):
     """One cone's boxes from its per-shell extents (n_rho,) (``high_j`` -1: a
     shell no ray reached): (span_k (n_rho,), base (n_rho + 1,)), as in

@@ -254,7 +254,7 @@ def cell_of_point(x, y, z, rho_edges, rho_kind, theta_edges, theta_kind, phi_edg
     return i, j, k
 
 
-@jit
+@jit(runtime=True)
 def cells_of_points(points, grid):
     """(M, 3) float64 points -> (M, 3) int32 cells, rows of -1 outside the region."""
     rho_edges, rho_kind = grid.rho_edges, grid.rho_kind

@@ -5,7 +5,7 @@ import numpy as np
 from .._jit import jit
 
 
-@jit
+@jit(runtime=True)
 def components(occupied, wrap_theta, labels):
     """Label the 26-connected components of ``occupied`` (n_rho, n_theta, n_phi) bool.
 

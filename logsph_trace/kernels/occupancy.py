@@ -533,7 +533,7 @@ def bin_rays(origin, points, q, q_coarse, bins, coarse):
                                + _bin_of(v, q_coarse))
 
 
-@jit
+@jit(runtime=True)
 def split_samples(coarse, n_coarse):
     """The first ray of each coarse bin (the samples), and the other rays, in order."""
     taken = np.zeros(n_coarse, dtype=np.uint8)

@@ -25,7 +25,7 @@ def scratch_length(n_rho, n_theta, n_phi):
     return 2 * (n_rho + 1) + (n_theta + 1) + 2 * (n_phi + 1) + 4
 
 
-@jit
+@jit(runtime=True)
 def thibaudeau_ray(origins, directions, row, grid, breaks, cells, t_enter, t_exit, start, write):
     """Ray ``row`` (unit direction); ``breaks`` is scratch of length ``scratch_length``."""
     ox, oy, oz = origins[row, 0], origins[row, 1], origins[row, 2]
