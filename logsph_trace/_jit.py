@@ -113,8 +113,10 @@ def jit(func=None, runtime=False, **overrides):
     takes and drops a reference to each array it is passed or reads out of
     a bundle: two atomic operations per array, about 40 per ray in
     ``exact.trace_ray``, which cost a third of its set-up. A kernel that
-    needs the runtime and lacks it fails to compile, loudly. numba-cuda
-    ignores the option.
+    needs the runtime and lacks it fails to compile, loudly; so does one
+    without it that calls a kernel that sorts, though only if that sort was
+    not compiled earlier in the process (``tests/test_nojit.py`` compiles
+    each method first in a fresh process). numba-cuda ignores the option.
     """
     options = dict(_OPTIONS, **overrides)
     if not (runtime or options.get("parallel")):

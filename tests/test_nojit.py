@@ -1,15 +1,19 @@
 """The kernels stay plain Python: with NUMBA_DISABLE_JIT=1 they give the compiled answers.
 
 Run in a subprocess on a small subset (the interpreter is ~100x slower), so
-coverage tools can see the kernels and a reader can step through them.
+coverage tools can see the kernels and a reader can step through them. The
+options the kernels compile with (the cache switch, Numba's runtime) are
+checked here too.
 """
 
+import inspect
 import os
 import subprocess
 import sys
 import textwrap
 
 import numpy as np
+import pytest
 
 import logsph_trace as lt
 
@@ -82,8 +86,9 @@ def test_serial_kernels_borrow_their_arrays():
 
     from logsph_trace import kernels
 
-    keep = {"bisect_rows", "box_bases", "cells_of_points", "components", "split_samples",
-            "thibaudeau_ray", "thibaudeau_rows"}
+    keep = {"bisect_ray", "bisect_rows", "box_bases", "cells_of_points", "components", "entry_time",
+            "split_samples", "thibaudeau_ray", "thibaudeau_rows"}
+    needs_runtime = (".sort(", "np.empty(", "np.zeros(", "np.full(", ".copy(")
     seen = set()
     for info in pkgutil.iter_modules(kernels.__path__):
         module = importlib.import_module(f"logsph_trace.kernels.{info.name}")
@@ -93,5 +98,25 @@ def test_serial_kernels_borrow_their_arrays():
                     and value.__module__ == module.__name__):
                 seen.add(name)
                 assert value.targetoptions.get("_nrt", True) == (name in keep), name
+                if not value.targetoptions.get("inline", "never") == "always":
+                    source = inspect.getsource(value.py_func)
+                    if any(call in source for call in needs_runtime):
+                        assert name in keep, f"{name} allocates or sorts"
     assert {"trace_ray", "trace_box_ray", "walk_ray", "locate"} <= seen
     assert keep <= seen
+
+
+@pytest.mark.parametrize("method", ["bisect", "thibaudeau"])
+def test_each_method_compiles_first_in_a_fresh_process(method):
+    """A kernel compiled without the runtime can still type when an earlier call
+    compiled the sort it uses with the runtime (the suite's order hid one such
+    kernel): each baseline method is compiled first, in a process of its own."""
+    probe = ("import numpy as np, logsph_trace as lt; "
+             "g = lt.Grid(0.3, 10.0, 4, 6, 5); o = np.zeros((3, 3)); "
+             "d = np.eye(3) + 0.1; "
+             f"print(len(lt.trace_many(g, o, d, method={method!r}, parallel=False).cells))")
+    env = dict(os.environ, LOGSPH_TRACE_CACHE="0")
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert int(out.stdout.split()[-1]) > 0

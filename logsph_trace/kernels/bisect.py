@@ -35,7 +35,7 @@ def _inside(ox, oy, oz, dx, dy, dz, t,
     return i >= 0
 
 
-@jit
+@jit(runtime=True)
 def entry_time(ox, oy, oz, dx, dy, dz, grid, candidates):
     """First t >= 0 at which the ray is inside the region (section 2.3), or -1.
 
@@ -96,7 +96,8 @@ def entry_time(ox, oy, oz, dx, dy, dz, grid, candidates):
     return -1.0
 
 
-@jit
+# It calls entry_time, which sorts: a kernel without the runtime cannot type that call.
+@jit(runtime=True)
 def bisect_ray(origins, directions, row, grid, default_t, max_iter, candidates,
                cells, t_enter, t_exit, start, write):
     """Algorithm 1 for ray ``row`` (unit direction); returns the number of cells reported."""
