@@ -63,46 +63,6 @@ def _plane_time(t_closest, cx, cz, dx, dz, edge_sin, edge_cos):
 
 
 @jit
-def _cone_time(t_closest, cy, dy, cab, ca2, b2, tan2, nappe, first_branch, branch_start, slack):
-    """Crossing of the elevation cone phi = edge on its own nappe, within the current branch.
-
-    ``(c_y + u d_y)^2 = tan(phi)^2 ((c_x + u d_x)^2 + (c_z + u d_z)^2)``, with
-    ``u = t - t_closest`` measured from the line's closest point ``c``, solved
-    with the cancellation-free quadratic formula (a ray parallel to a
-    generatrix has ``a ~ 0``); ``cab``, ``ca2``, ``b2`` are the x-z dot
-    products C.B, |C|^2, |B|^2 of C = (c_x, c_z) and the direction B.
-    Written about ``c`` rather than the origin, the coefficients keep their
-    accuracy when the line passes near the centre: there ``c`` and every
-    coefficient are small, where the origin's would be differences of large
-    terms (rounding ``c`` by eps |o| moved crossings by sqrt(eps) |o|).
-    A root before ``branch_start`` belongs to the other branch. On the branch
-    before phi's turning point the earlier root is the crossing, after it the
-    later one. Returns ``inf`` when no root qualifies: the crossing is at
-    infinity (a limit direction on the cone).
-    """
-    if nappe == 0.0:
-        return t_closest - cy / dy
-    a = dy * dy - tan2 * b2
-    half_b = cy * dy - tan2 * cab
-    c = cy * cy - tan2 * ca2
-    disc = max(half_b * half_b - a * c, 0.0)
-    q = -(half_b + math.copysign(math.sqrt(disc), half_b))
-    u1 = q / a
-    u2 = c / q
-    t1 = t_closest + u1
-    t2 = t_closest + u2
-    earliest = branch_start - slack
-    # Written as selects, not branches: ``earliest <= t < inf`` also rejects NaN,
-    # and the nappe test keeps the cone half whose sign of y matches phi.
-    ok1 = (t1 >= earliest) & (t1 < np.inf) & (nappe * (cy + u1 * dy) >= 0.0)
-    ok2 = (t2 >= earliest) & (t2 < np.inf) & (nappe * (cy + u2 * dy) >= 0.0)
-    if first_branch:
-        return min(t1 if ok1 else np.inf, t2 if ok2 else np.inf)
-    latest = max(t1 if ok1 else -np.inf, t2 if ok2 else -np.inf)
-    return latest if latest > -np.inf else np.inf
-
-
-@jit
 def _clamp(t_candidate, t_low, t_high, slack, last):
     """Keep a counted crossing inside its branch ``[t_low, t_high]``.
 
@@ -331,6 +291,71 @@ def theta_times(cx, cz, dx, dz, t_closest, jt, jt_limit, th_sigma, th_steps, t_a
 
 
 @jit(inline="always")
+def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, cab, ca2, b2,
+                first_branch, branch_start, slack):
+    """Crossings of the elevation cones ``low`` .. ``low + count - 1``, each on its own
+    nappe and within the current branch, into ``row[first:first + count]``.
+
+    ``(c_y + u d_y)^2 = tan(phi)^2 ((c_x + u d_x)^2 + (c_z + u d_z)^2)``, with
+    ``u = t - t_closest`` measured from the line's closest point ``c``, solved
+    with the cancellation-free quadratic formula (a ray parallel to a
+    generatrix has ``a ~ 0``); ``cab``, ``ca2``, ``b2`` are the x-z dot
+    products C.B, |C|^2, |B|^2 of C = (c_x, c_z) and the direction B.
+    Written about ``c`` rather than the origin, the coefficients keep their
+    accuracy when the line passes near the centre: there ``c`` and every
+    coefficient are small, where the origin's would be differences of large
+    terms (rounding ``c`` by eps |o| moved crossings by sqrt(eps) |o|).
+    A root before ``branch_start`` belongs to the other branch. On the branch
+    before phi's turning point the earlier root is the crossing, after it the
+    later one. ``inf`` when no root qualifies: the crossing is at infinity (a
+    limit direction on the cone). The cone of phi = 0 (``nappe`` 0) is the
+    plane y = 0.
+
+    One loop over the cones in index order, with unit stride, no branches
+    and slices that start at zero, so that LLVM vectorises it (four square
+    roots or divisions per instruction). On the benchmark machine that took
+    a crossing from 13.5 to 9.9 ns, although it also computes those past
+    the ray's exit. ``phi_times`` reverses a descending branch in place.
+    """
+    tan2s = phi_tan2[low:low + count]
+    nappes = phi_nappe[low:low + count]
+    out = row[first:first + count]
+    earliest = branch_start - slack
+    inf = np.inf
+    plane = t_closest - cy / dy
+    for k in range(count):
+        tan2 = tan2s[k]
+        nappe = nappes[k]
+        a = dy * dy - tan2 * b2
+        half_b = cy * dy - tan2 * cab
+        c = cy * cy - tan2 * ca2
+        disc = max(half_b * half_b - a * c, 0.0)
+        q = -(half_b + math.copysign(math.sqrt(disc), half_b))
+        u1 = q / a
+        u2 = c / q
+        t1 = t_closest + u1
+        t2 = t_closest + u2
+        # Selects, not branches: ``earliest <= t < inf`` also rejects NaN, and
+        # the nappe test keeps the cone half whose sign of y matches phi.
+        ok1 = (t1 >= earliest) & (t1 < inf) & (nappe * (cy + u1 * dy) >= 0.0)
+        ok2 = (t2 >= earliest) & (t2 < inf) & (nappe * (cy + u2 * dy) >= 0.0)
+        latest = max(t1 if ok1 else -inf, t2 if ok2 else -inf)
+        crossing = (min(t1 if ok1 else inf, t2 if ok2 else inf) if first_branch
+                    else (latest if latest > -inf else inf))
+        out[k] = plane if nappe == 0.0 else crossing
+
+
+@jit(inline="always")
+def _reverse(row, first, count):
+    """Reverse ``row[first:first + count]`` in place."""
+    for k in range(count // 2):
+        a = row[first + k]
+        row[first + k] = row[first + count - 1 - k]
+        row[first + count - 1 - k] = a
+
+
+
+@jit(inline="always")
 def phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps, ph2_start,
               ph2_steps, ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones):
     """Phase 2 for phi: as ``theta_times``, into row ``PHI``; returns their number."""
@@ -343,13 +368,13 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps
     t_prev = 0.0
     done = False  # a crossing past t_final ends the list
     sigma = 1 if ph2_start > kp else -1
+    row = times[PHI]
+    _cone_times(kp + 1 if sigma > 0 else kp - ph1_steps + 1, ph1_steps, phi_tan2, phi_nappe, row,
+                1, t_closest, cy, dy, cab, ca2, b2, True, 0.0, slack)
+    if sigma < 0:
+        _reverse(row, 1, ph1_steps)
     for step in range(ph1_steps):
-        edge = zone + 1 if sigma > 0 else zone
-        t_prev = _clamp(
-            _cone_time(t_closest, cy, dy, cab, ca2, b2, phi_tan2[edge], phi_nappe[edge], True,
-                       0.0, slack),
-            t_prev, t_turn, slack, step == ph1_steps - 1,
-        )
+        t_prev = _clamp(row[n_p + 1], t_prev, t_turn, slack, step == ph1_steps - 1)
         if t_prev > t_final:
             done = True
             break
@@ -369,13 +394,13 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps
     if not done:
         sigma = 1 if kp_limit > zone else -1
         branch_start = t_turn if t_turn < inf else 0.0
+        _cone_times(zone + 1 if sigma > 0 else zone - ph2_steps + 1, ph2_steps, phi_tan2,
+                    phi_nappe, row, n_p + 1, t_closest, cy, dy, cab, ca2, b2, False, branch_start,
+                    slack)
+        if sigma < 0:
+            _reverse(row, n_p + 1, ph2_steps)
         for step in range(ph2_steps):
-            edge = zone + 1 if sigma > 0 else zone
-            t_prev = _clamp(
-                _cone_time(t_closest, cy, dy, cab, ca2, b2, phi_tan2[edge], phi_nappe[edge],
-                           False, branch_start, slack),
-                t_prev, inf, slack, step == ph2_steps - 1,
-            )
+            t_prev = _clamp(row[n_p + 1], t_prev, inf, slack, step == ph2_steps - 1)
             if t_prev > t_final:
                 break
             zone += sigma
