@@ -36,14 +36,21 @@ def status(field):
     raise KeyError(field)
 
 
-def resident_growth(call):
-    """(result, growth of peak resident memory during ``call()``), or (result, None)."""
+def reset_peak():
+    """Restart the kernel's count of peak resident memory (``VmHWM``); False where it cannot."""
     try:
-        before = status("VmRSS")
         with open("/proc/self/clear_refs", "w") as clear_refs:
             clear_refs.write("5")
+        return True
     except OSError:
+        return False
+
+
+def resident_growth(call):
+    """(result, growth of peak resident memory during ``call()``), or (result, None)."""
+    if not reset_peak():
         return call(), None
+    before = status("VmRSS")
     result = call()
     return result, status("VmHWM") - before
 

@@ -15,6 +15,7 @@ from conftest import GRIDS, random_rays
 from singular import CLASSES, singular_rays
 
 import logsph_trace as lt
+from bench.parallel_memory import reset_peak, status
 from logsph_trace import _batching, _validate
 from logsph_trace.kernels import exact as _exact
 
@@ -140,26 +141,7 @@ def test_trace_many_on_two_threads_takes_the_halves():
     assert got.cells.base is not None and got.cells.base.shape[0] > got.cells.shape[0]
 
 
-def _kib(field):
-    """A ``/proc/self/status`` figure (``VmRSS``, ``VmHWM``) in bytes."""
-    with open("/proc/self/status") as status:
-        for line in status:
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) * 1024
-    raise KeyError(field)
-
-
-def _reset_peak():
-    """Restart the kernel's count of peak resident memory; False where it cannot."""
-    try:
-        with open("/proc/self/clear_refs", "w") as clear_refs:
-            clear_refs.write("5")
-        return True
-    except OSError:
-        return False
-
-
-@pytest.mark.skipif(not _reset_peak(), reason="needs Linux's /proc/self/clear_refs")
+@pytest.mark.skipif(not reset_peak(), reason="needs Linux's /proc/self/clear_refs")
 def test_halves_touch_only_their_output():
     # The reservation is sized by sampled upper bounds with a margin (here
     # 1.9x the output), but only the stretch the halves wrote becomes
@@ -176,10 +158,10 @@ def test_halves_touch_only_their_output():
     run = lambda n: _batching.run_halves(  # noqa: E731
         _batching.EXACT_KERNELS, (o[:n], d[:n], far[:n], args), (o[:n], d[:n], args), n, worst)
     run(2000)
-    before = _kib("VmRSS")
-    assert _reset_peak()
+    before = status("VmRSS")
+    assert reset_peak()
     traces = run(n_rays)
-    grown = _kib("VmHWM") - before
+    grown = status("VmHWM") - before
     arrays = (traces.cells, traces.t_enter, traces.t_exit)
     output = sum(a.nbytes for a in arrays) + traces.offsets.nbytes
     reserved = sum(a.base.nbytes for a in arrays) + traces.offsets.nbytes
