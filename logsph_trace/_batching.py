@@ -15,8 +15,10 @@ of bounded size.
   traces the back half of the batch in order, appending up from an anchor;
   the other the front half from its last ray back, each block of rays
   placed just below the rays after it, down from the same anchor. Every
-  segment is written once, to its final place, by the thread that traced
-  it (which also takes the page faults): no copy, no pre-touched output.
+  segment is written to its final place by the thread that traced it
+  (which also takes the page faults): straight there by the back thread,
+  through a block scratch by the front one, whose copy bypasses the cache
+  (``stream.stream_segments``). No pack, no pre-touched output.
   The anchor and the reservation come from upper bounds on a sample of the
   rays, with a margin; the result is views of the stretch written, and the
   reserved pages around it are never touched (address space, not memory).
@@ -26,8 +28,9 @@ of bounded size.
   wave gives each thread a contiguous chunk of rays, sized from the segments
   per ray so far to fill ``WAVE_FILL`` of a fixed scratch region
   (``WAVE_SEGMENTS`` per thread), traced there (``exact.trace_chunks``); the
-  chunks are then copied, in parallel, to their final place in the output
-  (``exact.gather_chunks``), which therefore grows by exact counts. A chunk
+  chunks are then copied, in parallel and bypassing the cache, to their
+  final place in the output (``exact.gather_chunks``), which therefore
+  grows by exact counts. A chunk
   that runs out of room stops before the ray that might not fit; the chunks
   after it are traced again in the next wave (rare: the sizing leaves a
   quarter spare). The output is allocated once from the first wave's
@@ -233,7 +236,7 @@ def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, paralle
 
     All run the same per-ray code, so the outputs are identical. A batch too
     small to split, or one thread, takes the serial pass; two threads take
-    the halves, which copy nothing, unless their reservation would not fit
+    the halves, which pack nothing, unless their reservation would not fit
     in memory; more threads take the waves.
     """
     threads = numba.get_num_threads() if parallel else 1
@@ -266,12 +269,15 @@ def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
 # a half outgrows its room only when the sample is off by more than this.
 HALVES_MARGIN = 1.25
 # The front thread copies each block of segments once more (out of its block
-# scratch), so it gets less than half of the bounds' sum. On the exact method
-# it spends about 15% more than the back thread on the same rays (100,000
-# rays of bench.run on 2 threads, best of 12 calls in one run: 0.465 of the
-# work 92.6-92.9 ms; 0.476 93.5-93.6; 0.49 96.1). Amanatides-Woo, memory-bound
-# on two threads there, runs the same from 0.42 to 0.48 (54.4-57.5 ms).
-HALVES_FRONT_SHARE = 1 / 2.15
+# scratch, with non-temporal stores: ``stream.stream_segments``), so it gets
+# less than half of the bounds' sum. On the exact method, one thread, the
+# front half's rays cost 59.8 ms at a share of 0.465 against 61.6 ms for the
+# back half's (bench.run's 100,000 rays, pre-touched arrays). On 2 threads,
+# best of 12 calls in one run, fresh arrays / reused buffers: 0.455 73.1 /
+# 64.1-65.4 ms; 0.465 72.0 / 63.2-64.4; 0.475 70.7-71.6 / 63.7-64.0; 0.485
+# 72.0-72.6 / 64.9-65.8. Amanatides-Woo, memory-bound on two threads there,
+# ran the same from 0.42 to 0.48 before the stores were non-temporal.
+HALVES_FRONT_SHARE = 0.47
 # Rays run_halves samples for their bounds, plus one in 512; at most one in 16
 # (a ray's set-up costs about a quarter of tracing it on bench.run's grid),
 # but 64 at least.
@@ -283,14 +289,15 @@ HALVES_CHECKED_BYTES = 1 << 28
 
 
 def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
-    """Two threads that meet in the middle: no copy of the output, no pre-touched pages.
+    """Two threads that meet in the middle: no pack of the output, no pre-touched pages.
 
     The front half of the batch is traced by one thread, last ray first, each
-    block of rays placed just below the rays after it, down from an anchor;
-    the back half by the other thread, in order, up from the anchor. The
-    segments then lie contiguous and in ray order between where the front
-    thread stopped and the back one ended: each written once, to its final
-    place, by the thread that traced it, which also takes its page faults.
+    block of rays traced into a scratch block and copied (non-temporally)
+    just below the rays after it, down from an anchor; the back half by the
+    other thread, in order, up from the anchor. The segments then lie
+    contiguous and in ray order between where the front thread stopped and
+    the back one ended: each written to its final place by the thread that
+    traced it, which also takes its page faults.
     The result is views of that stretch; the reserved pages outside it are
     never touched, so they cost address space, not memory.
 

@@ -44,6 +44,7 @@ from .locate import (
     rho_zone,
     theta_zone,
 )
+from .stream import stream_segments
 
 
 @jit
@@ -679,22 +680,10 @@ def gather_chunks(starts, regions, ends, offsets, loose_cells, loose_enter, loos
     for chunk in prange(n_chunks):
         source = regions[chunk]
         shift = targets[chunk] - source
-        copy_segments(loose_cells, loose_enter, loose_exit, source, ends[chunk] - source, cells,
-                      t_enter, t_exit, targets[chunk])
+        stream_segments(loose_cells, loose_enter, loose_exit, source, ends[chunk] - source,
+                        cells, t_enter, t_exit, targets[chunk])
         for row in range(starts[chunk] + 1, starts[chunk + 1] + 1):
             offsets[row] += shift
-
-
-@jit(inline="always")
-def copy_segments(from_cells, from_enter, from_exit, source, count, cells, t_enter, t_exit,
-                  target):
-    """Copy ``count`` segments from row ``source`` of the first arrays to row ``target``."""
-    for seg in range(count):
-        cells[target + seg, 0] = from_cells[source + seg, 0]
-        cells[target + seg, 1] = from_cells[source + seg, 1]
-        cells[target + seg, 2] = from_cells[source + seg, 2]
-        t_enter[target + seg] = from_enter[source + seg]
-        t_exit[target + seg] = from_exit[source + seg]
 
 
 @jit
@@ -774,7 +763,7 @@ def place_block(block_cells, block_enter, block_exit, count, cells, t_enter, t_e
     ``offsets[begin]`` gets the block's start.
     """
     start = top - count
-    copy_segments(block_cells, block_enter, block_exit, 0, count, cells, t_enter, t_exit, start)
+    stream_segments(block_cells, block_enter, block_exit, 0, count, cells, t_enter, t_exit, start)
     offsets[begin] = 0
     for row in range(begin, end + 1):
         offsets[row] += start
