@@ -26,6 +26,7 @@ import numpy as np
 
 import logsph_trace as lt
 from bench.workload import fresh_processes, make_box, make_grid, make_rays, thread_counts, timed
+from logsph_trace import _batching, _validate
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -66,24 +67,34 @@ def measure(n_rays, cells, repeats, thread_counts):
     most = numba.get_num_threads()
     buffers = lt.TraceBuffers()  # the robot's case: the same arrays every frame
     lt.trace_many(grid, origins, directions, out=buffers)
+    # The waves, which trace_many takes from 3 threads on, timed on every
+    # thread count: on a 2-core machine this is the only view of their phases.
+    unit_origins, unit_directions = _validate.rays(origins, directions)
+    far = np.full(n_rays, np.inf)
+    waves = [t for t in thread_counts if t > 1]
     runs = {}
     for _ in range(repeats):  # alternate everything so that all see the same noise
         for threads in thread_counts:
             numba.set_num_threads(min(threads, most))
             parallel = threads > 1
-            for name, call in (
+            calls = [
                 ("exact", lambda: lt.trace_many(grid, origins, directions, parallel=parallel)),
                 ("amanatides_woo", lambda: box.trace_many(origins, directions, parallel=parallel)),
                 ("exact_buffers", lambda: lt.trace_many(grid, origins, directions,
                                                         parallel=parallel, out=buffers)),
-            ):
+            ]
+            if threads in waves:
+                calls.append(("exact_waves", lambda: _batching.run_exact_parallel(
+                    grid, unit_origins, unit_directions, far, grid.kernel_args(),
+                    min(threads, most))))
+            for name, call in calls:
                 runs[name, threads] = timed(call, runs.get((name, threads)),
                                             keep=lambda traces: int(traces.cells.shape[0]))
     numba.set_num_threads(most)
 
     def summary(name, threads):
         run = runs[name, threads]
-        one = runs[name, 1]["seconds"]
+        one = runs["exact" if name == "exact_waves" else name, 1]["seconds"]
         return {
             "threads": threads,
             "seconds": run["seconds"],
@@ -102,6 +113,7 @@ def measure(n_rays, cells, repeats, thread_counts):
     exact = [summary("exact", t) for t in thread_counts]
     reference = [summary("amanatides_woo", t) for t in thread_counts]
     reused = [summary("exact_buffers", t) for t in thread_counts]
+    in_waves = [summary("exact_waves", t) for t in waves]
     return {
         "rays": n_rays,
         "cells_per_axis": cells,
@@ -109,6 +121,7 @@ def measure(n_rays, cells, repeats, thread_counts):
         "exact": exact,
         "amanatides_woo": reference,
         "exact_into_reused_buffers": reused,
+        "exact_in_waves": in_waves,
         "exact_over_amanatides_woo_per_voxel": [
             e["ns_per_voxel"] / r["ns_per_voxel"] for e, r in zip(exact, reference)],
     }
@@ -140,7 +153,8 @@ def table(result, first_call):
         "|---|---:|---:|---:|" + "---:|" * len(PHASES) + "---:|",
     ]
     for name, rows in (("exact", result["exact"]), ("Amanatides-Woo", result["amanatides_woo"]),
-                       ("exact, out=TraceBuffers", result["exact_into_reused_buffers"])):
+                       ("exact, out=TraceBuffers", result["exact_into_reused_buffers"]),
+                       ("exact, waves", result.get("exact_in_waves", []))):
         for row in rows:
             phases = " | ".join(f"{row['phases_s'].get(p, 0.0) * 1e3:.1f}" for p in PHASES)
             lines.append(f"| {name} | {row['threads']} | {row['seconds'] * 1e3:.1f} "
@@ -148,7 +162,9 @@ def table(result, first_call):
                          f"| {100 * row['serial_part_of_one_thread']:.1f}% |")
     lines += ["", "speed-up: over the same call on 1 thread; serial part: the phases that run "
               "on one thread whatever the thread count (bound, shrink, other), as a share of the "
-              "one-thread time; out=TraceBuffers: the same arrays reused every call"]
+              "one-thread time; out=TraceBuffers: the same arrays reused every call; waves: "
+              "the path trace_many takes from 3 threads on (2 threads take the halves), "
+              "forced at every thread count above 1, speed-up over exact on 1 thread"]
     if first_call:
         lines += [
             "",

@@ -387,7 +387,7 @@ def run_waves(chunks, inputs, n_rays, worst, threads, buffers=None):
         # straight to their place there: 1/threads of the copy saved.
         direct = output is not None
         if direct and used + room > output[0].shape[0]:
-            output = grown_output(output, used + room, n_rays, row, used, threads * room,
+            output = grown_output(output, used + room, n_rays, row, used, room,
                                   in_place, used)
         start = lap("other", start)
         head = output if direct else loose
@@ -408,7 +408,7 @@ def run_waves(chunks, inputs, n_rays, worst, threads, buffers=None):
         if output is None or used + traced > output[0].shape[0]:
             start = lap("other", start)
             output = grown_output(output, used + traced, n_rays, int(starts[-1]), used + traced,
-                                  threads * room, in_place, placed)
+                                  room, in_place, placed)
             start = lap("allocate", start)
         first = 1 if direct else 0
         _exact.gather_chunks(starts[first:], regions[first:kept + 1], ends[first:], offsets,
