@@ -36,6 +36,25 @@ def test_stream_copy_every_alignment_and_count(dtype):
                                               err_msg=f"{count=} {source_at=} {target_at=}")
 
 
+def test_stream_copy_to_a_misaligned_target():
+    """A float64 view 4 bytes off its alignment never gets an aligned vector store
+    (which would crash the process: hence the subprocess)."""
+    script = textwrap.dedent(
+        """
+        import numpy as np
+        from logsph_trace.kernels import stream
+        raw = np.zeros(8 * 64 + 8, dtype=np.uint8)
+        target = np.ndarray(64, dtype=np.float64, buffer=raw,
+                            offset=4 + (-raw.ctypes.data) % 8)
+        assert target.ctypes.data % 8 == 4
+        source = np.arange(64, dtype=np.float64)
+        stream.stream_copy(source, 0, target, 0, 64)
+        assert (target == source).all()
+        """
+    )
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=120)
+
+
 def test_stream_segments_moves_rows_and_nothing_else():
     rng = np.random.default_rng(6)
     rows = 300

@@ -85,12 +85,15 @@ def stream_copy(src, source, dst, target, count):
     """``dst[target:target + count] = src[source:source + count]`` with non-temporal stores.
 
     1D C-contiguous arrays of one dtype that do not overlap; the caller
-    fences (``stream_segments``).
+    fences (``stream_segments``). A target whose elements are not aligned to
+    their size (never one numpy allocated) is copied with plain stores.
     """
     size = dst.itemsize
     per = STREAM_BYTES // size
     address = dst.ctypes.data + target * size
     head = min(count, ((STREAM_BYTES - address % STREAM_BYTES) % STREAM_BYTES) // size)
+    if (address + head * size) % STREAM_BYTES != 0:
+        head = count  # elements not aligned to their size (not numpy's allocator): all plain
     for k in range(head):
         dst[target + k] = src[source + k]
     k = head
