@@ -5,8 +5,9 @@ trace into a small scratch and copy it there afterwards: the front half of
 ``exact.trace_halves`` (its blocks) and the waves' gather
 (``exact.gather_chunks``). An ordinary store to memory that is not in the
 cache first reads the line it writes into (a read for ownership), so such a
-copy moves every byte three times. A non-temporal store writes the line
-without reading it, and leaves the cache to the tracing. On the benchmark
+copy moves each target byte between memory and the cache twice. A
+non-temporal store writes the line without reading it, and leaves the cache
+to the tracing. On the benchmark
 machine (2-core AMD EPYC VM) copying 6M segments (168 MB) from a 32K-segment
 scratch into memory took 16.0 ms as a loop of plain stores, 13.3 ms as
 three ``memcpy`` and 7.5 ms with these stores.
