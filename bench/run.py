@@ -71,6 +71,7 @@ def measure(n_rays, cells, repeats, thread_counts):
     # thread count: on a 2-core machine this is the only view of their phases.
     unit_origins, unit_directions = _validate.rays(origins, directions)
     far = np.full(n_rays, np.inf)
+    args = grid.kernel_args()
     waves = [t for t in thread_counts if t > 1]
     runs = {}
     for _ in range(repeats):  # alternate everything so that all see the same noise
@@ -85,8 +86,7 @@ def measure(n_rays, cells, repeats, thread_counts):
             ]
             if threads in waves:
                 calls.append(("exact_waves", lambda: _batching.run_exact_parallel(
-                    grid, unit_origins, unit_directions, far, grid.kernel_args(),
-                    min(threads, most))))
+                    grid, unit_origins, unit_directions, far, args, min(threads, most))))
             for name, call in calls:
                 runs[name, threads] = timed(call, runs.get((name, threads)),
                                             keep=lambda traces: int(traces.cells.shape[0]))

@@ -40,7 +40,8 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
         Trace rays on all Numba threads (``prange``). The output is identical
         to the serial run. For ``"exact"`` every ray is traced once: serially
         by appending; on two threads from the middle of the batch outwards,
-        each segment written straight to its place (the arrays are then views
+        each segment written to its final place by the thread that traced it
+        (the front half's through a small block scratch; the arrays are views
         of a larger reservation whose other pages are never touched, so they
         take no memory); on more threads in waves, each thread tracing a
         chunk of rays into a scratch region of its own, the chunks then copied

@@ -355,7 +355,6 @@ def _reverse(row, first, count):
         row[first + count - 1 - k] = a
 
 
-
 @jit(inline="always")
 def phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps, ph2_start,
               ph2_steps, ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones):
@@ -773,13 +772,14 @@ def place_block(block_cells, block_enter, block_exit, count, cells, t_enter, t_e
 @jit(parallel=True)
 def trace_halves(split, anchor, limit, origins, directions, t_max, grid, cells, t_enter, t_exit,
                  offsets):
-    """Two threads that write every segment straight to its final place.
+    """Two threads that write every segment to its final place, none packed afterwards.
 
     Rays ``split - 1`` down to 0 are placed below ``anchor`` (``trace_span_back``,
-    down to row 0 of the arrays), rays ``split`` on from ``anchor`` up to
-    ``limit`` (``trace_span``); the two halves meet at ``anchor``, so the
-    batch's segments end up contiguous, in ray order, between where the front
-    half stopped and the back half ended (``_batching.run_halves``).
+    through a block scratch, down to row 0 of the arrays), rays ``split`` on
+    from ``anchor`` up to ``limit`` (``trace_span``, straight into the
+    arrays); the two halves meet at ``anchor``, so the batch's segments end
+    up contiguous, in ray order, between where the front half stopped and
+    the back half ended (``_batching.run_halves``).
     ``offsets`` holds positions in the arrays: ``offsets[split]`` must be
     ``anchor``. Returns ([start of the segments, end of them], [rows
     0..reached[0]-1 not traced, first row not traced]): every row is traced
