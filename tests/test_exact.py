@@ -177,3 +177,24 @@ def test_every_parallel_path_equals_the_serial_one(monkeypatch, wave_segments):
             # The waves' arrays own exactly their data: no spare room kept alive
             # (two threads take the halves instead: tests/test_halves.py).
             assert result is results[0] or getattr(result, name).base is None
+
+
+@pytest.mark.parametrize("kind", ["centre", "y_axis", "sphere_tangent", "phi_turn", "corner"])
+def test_waves_equal_the_serial_pass_on_near_singular_rays(monkeypatch, kind):
+    # Rays through or a hair (1e-15 .. 1e-3 of the scene) beside the centre,
+    # the y axis, tangents and corners, from random eyes, in waves of 3 chunks
+    # small enough (2,000 segments each) that every wave gathers its chunks.
+    from singular import CLASSES, singular_rays
+
+    from logsph_trace import _batching, _validate
+
+    monkeypatch.setattr(_batching, "WAVE_SEGMENTS", 2000)
+    grid = GRIDS["log_full"]()
+    rng = np.random.default_rng(CLASSES.index(kind) + 313)
+    origins, directions, _ = singular_rays(rng, grid, kind, 100)
+    serial = lt.trace_many(grid, origins, directions, parallel=False)
+    o, d = _validate.rays(origins, directions)
+    waves = _batching.run_exact_parallel(grid, o, d, np.full(len(o), np.inf), grid.kernel_args(),
+                                         threads=3)
+    for name in ("offsets", "cells", "t_enter", "t_exit"):
+        np.testing.assert_array_equal(getattr(waves, name), getattr(serial, name))
