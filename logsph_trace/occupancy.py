@@ -77,35 +77,6 @@ def _coherent_plan(grid, origin, n_rays):
     return int(np.clip(np.ceil(2.0 / step), 8, COHERENT_MAX_BINS))
 
 
-def _ray_cone(bins, per_side):
-    """Return (axis x, y, z, half-angle): a cone holding every direction of ``bins``.
-
-    The axis is their centres' mean direction; the half-angle the largest
-    angle from it to a bin's corner (a bin is convex on its face's plane, the
-    cone's cross-section there too, so its corners are its farthest points).
-    """
-    face, rest = np.divmod(bins, per_side * per_side)
-    bu, bv = np.divmod(rest, per_side)
-    step = 2.0 / per_side
-    corners = []
-    for du, dv in ((0, 0), (1, 0), (0, 1), (1, 1), (0.5, 0.5)):
-        u = -1.0 + (bu + du) * step
-        v = -1.0 + (bv + dv) * step
-        axis, sign = face // 2, 1.0 - 2.0 * (face % 2)
-        vectors = np.empty((bins.shape[0], 3))
-        vectors[np.arange(bins.shape[0]), axis] = sign
-        other_a = np.where(axis == 0, 1, 0)
-        other_b = np.where(axis == 2, 1, 2)
-        vectors[np.arange(bins.shape[0]), other_a] = u
-        vectors[np.arange(bins.shape[0]), other_b] = v
-        corners.append(vectors / np.linalg.norm(vectors, axis=1)[:, None])
-    axis = np.sum(corners[-1], axis=0)
-    axis /= np.linalg.norm(axis)
-    cosines = np.concatenate([c @ axis for c in corners[:-1]])
-    half_angle = float(np.arccos(np.clip(np.min(cosines), -1.0, 1.0))) + 1e-9
-    return np.array([*axis, half_angle])
-
-
 def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
     """Flag the cells the rays from ``origin`` cross (``_kernels.mark_scan``).
 
@@ -151,7 +122,8 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
     _kernels.mark_scan(origin, points, max_range, args, free, hits, samples, bins, no_marks, 0)
     if others.shape[0] == 0:
         return 0, 0, 0
-    rays = _ray_cone(coarse_bins[samples], coarse)  # every ray's coarse bin holds a sample
+    rays = np.empty(4)
+    _kernels.ray_cone(coarse_bins[samples], coarse, rays)  # every ray's coarse bin holds a sample
     view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
     _kernels.columns_in_view(origin, args, rays, view)
     skip = min(grid.n_rho - 1, 63)  # the masks' 64 bits

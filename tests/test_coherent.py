@@ -243,10 +243,48 @@ def test_the_ray_cone_holds_every_ray():
         for q in (8, 101, 306):
             bins = np.empty(points.shape[0], dtype=np.int64)
             kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins))
-            cone = occ._ray_cone(np.unique(bins), q)
+            cone = np.empty(4)
+            kernels.ray_cone(np.unique(bins), q, cone)
             directions = points - origin
             directions /= np.linalg.norm(directions, axis=1)[:, None]
             assert np.arccos(np.clip(directions @ cone[:3], -1, 1)).max() <= cone[3]
+
+
+def test_the_ray_cone_is_the_same_on_any_number_of_threads():
+    # Its axis is a sum over the bins, taken in fixed blocks: more bins than
+    # one block, spread over every face, summed on 1 and 2 threads.
+    rng = np.random.default_rng(59)
+    q = 64
+    bins = np.unique(rng.integers(0, 6 * q * q, 3 * kernels.CONE_SUM_BLOCK))
+    cones = []
+    for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+        with numba.parallel_chunksize(0):
+            numba.set_num_threads(threads)
+            cone = np.empty(4)
+            kernels.ray_cone(bins, q, cone)
+            cones.append(cone)
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    np.testing.assert_array_equal(cones[0], cones[1])
+    centres = np.array([kernels._bin_corner(b, q, 0.5, 0.5) for b in bins[:50]])
+    assert np.all(np.arccos(np.clip(centres @ cones[0][:3], -1, 1)) <= cones[0][3])
+
+
+@pytest.mark.parametrize("q", [1, 2, 3, 4, 9])
+def test_a_ray_cone_wider_than_a_half_space_is_the_sphere(q):
+    # Every bin of the cube: the centres sum to zero, or to rounding noise in
+    # a random direction. The corners' largest angle from that axis (2.97 rad
+    # for q = 3) would leave out a cap round its opposite, inside one bin and
+    # clear of its corners: beyond a half-space the corners no longer bound
+    # the bins. Every direction must be held (and never NaN).
+    cone = np.empty(4)
+    kernels.ray_cone(np.arange(6 * q * q), q, cone)
+    assert np.all(np.isfinite(cone)) and cone[3] >= np.pi
+    # More than a half-space but not all round: one face's worth short.
+    kernels.ray_cone(np.arange(q * q, 6 * q * q), q, cone)
+    assert cone[3] >= np.pi
+    # Within a half-space the cone stays tight.
+    kernels.ray_cone(np.arange(q * q), q, cone)
+    assert cone[3] < np.pi / 2
 
 
 @pytest.mark.parametrize("grid, sensor", [scan[:2] for scan in SCANS])

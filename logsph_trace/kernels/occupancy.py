@@ -533,6 +533,86 @@ def bin_rays(origin, points, q, q_coarse, bins, coarse):
                                + _bin_of(v, q_coarse))
 
 
+# ``ray_cone`` sums the bins' centres in blocks of this many, then the blocks'
+# sums in order: the same sum, bit for bit, on any number of threads.
+CONE_SUM_BLOCK = 4096
+
+
+@jit(inline="always")
+def _bin_corner(b, q, du, dv):
+    """Unit direction of a point of cube-map bin ``b`` (``q`` x ``q`` per face):
+    ``du``, ``dv`` in [0, 1] across it (0.5, 0.5: its centre)."""
+    face = b // (q * q)
+    rest = b - face * q * q
+    step = 2.0 / q
+    u = -1.0 + (rest // q + du) * step
+    v = -1.0 + (rest % q + dv) * step
+    sign = 1.0 - 2.0 * (face % 2)
+    axis = face // 2
+    if axis == 0:
+        x, y, z = sign, u, v
+    elif axis == 1:
+        x, y, z = u, sign, v
+    else:
+        x, y, z = u, v, sign
+    norm = math.sqrt(x * x + y * y + z * z)
+    return x / norm, y / norm, z / norm
+
+
+@jit(parallel=True)
+def ray_cone(bins, q, cone):
+    """A cone holding every direction of cube-map ``bins`` (``q`` x ``q`` per
+    face), into ``cone``: (axis x, y, z, half-angle).
+
+    The axis is the bins' centres' mean direction; the half-angle the largest
+    angle from it to a bin's corner, plus 1e-9: a bin's directions form a
+    convex cone, spanned by its corners, so a convex cone (one no wider than
+    a half-space) that holds the corners holds the bin. A wider one is not
+    convex, so then, and when the centres sum to zero, the half-angle is pi
+    (+ 1e-9): every direction. Both passes run on all threads; the sum goes
+    by fixed blocks (``CONE_SUM_BLOCK``), so the cone does not depend on the
+    thread count.
+    """
+    n = bins.shape[0]
+    n_blocks = (n + CONE_SUM_BLOCK - 1) // CONE_SUM_BLOCK
+    sums = np.zeros((n_blocks, 3), dtype=np.float64)
+    for block in prange(n_blocks):
+        for row in range(block * CONE_SUM_BLOCK, min(n, (block + 1) * CONE_SUM_BLOCK)):
+            x, y, z = _bin_corner(bins[row], q, 0.5, 0.5)
+            sums[block, 0] += x
+            sums[block, 1] += y
+            sums[block, 2] += z
+    ax = 0.0
+    ay = 0.0
+    az = 0.0
+    for block in range(n_blocks):
+        ax += sums[block, 0]
+        ay += sums[block, 1]
+        az += sums[block, 2]
+    norm = math.sqrt(ax * ax + ay * ay + az * az)
+    if not norm > 0.0:  # directions all round, in balance: no mean direction
+        cone[0] = 1.0
+        cone[1] = 0.0
+        cone[2] = 0.0
+        cone[3] = math.pi + 1e-9
+        return
+    ax /= norm
+    ay /= norm
+    az /= norm
+    lowest = 1.0  # min is exact in any order
+    for row in prange(n):
+        b = bins[row]
+        for corner in range(4):
+            x, y, z = _bin_corner(b, q, corner % 2, corner // 2)
+            lowest = min(lowest, x * ax + y * ay + z * az)
+    cone[0] = ax
+    cone[1] = ay
+    cone[2] = az
+    # Wider than a half-space, the cone is no longer convex: a bin could hold
+    # directions outside it with every corner inside. It is then the sphere.
+    cone[3] = math.acos(lowest) + 1e-9 if lowest >= 0.0 else math.pi + 1e-9
+
+
 @jit(runtime=True)
 def split_samples(coarse, n_coarse):
     """The first ray of each coarse bin (the samples), and the other rays, in order."""
