@@ -32,6 +32,8 @@ SCRIPT = textwrap.dedent(
     bisect = lt.trace_many(grid, origins, directions, method="bisect", default_t=0.7)
     thibaudeau = lt.trace_many(grid, origins, directions, method="thibaudeau")
     occupancy = lt.OccupancyGrid(grid).integrate(origins[:20] * 0.5, [0.2, 0.1, 0.0])
+    # At the centre, each point twice: two rays end in every hit cell.
+    radial = lt.OccupancyGrid(grid).integrate(np.repeat(origins[:20] * 0.5, 2, axis=0), [0, 0, 0])
     cone = lt.trace_cone(grid, [0.4, 1.5, 1.2], [-0.1, -0.4, 1.0], 0.1, n_rays=20)
     cart = CartesianGrid((-10.0, -10.0, -10.0), (10.0, 10.0, 10.0), (7, 8, 9))
     boxes = cart.trace_many(origins, directions)
@@ -40,6 +42,7 @@ SCRIPT = textwrap.dedent(
              points=grid.cell_of(origins), bisect_cells=bisect.cells,
              bisect_offsets=bisect.offsets, thibaudeau_cells=thibaudeau.cells,
              thibaudeau_offsets=thibaudeau.offsets, log_odds=occupancy.log_odds,
+             radial_log_odds=radial.log_odds,
              cone_cells=cone.cells, cone_weights=cone.weights)
     """
 )
@@ -61,6 +64,8 @@ def test_kernels_run_without_jit(tmp_path):
     np.testing.assert_allclose(plain["t_enter"], jitted["t_enter"], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(plain["t_exit"], jitted["t_exit"], rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(plain["log_odds"], jitted["log_odds"])
+    np.testing.assert_array_equal(plain["radial_log_odds"], jitted["radial_log_odds"])
+    assert np.any(jitted["radial_log_odds"] > 0)
     np.testing.assert_array_equal(plain["cone_cells"], jitted["cone_cells"])
     np.testing.assert_allclose(plain["cone_weights"], jitted["cone_weights"], rtol=1e-12)
     assert lt.Grid(0.3, 10.0, 6, 8, 5).shape == (6, 8, 5)

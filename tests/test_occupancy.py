@@ -53,9 +53,11 @@ def test_max_range_carves_without_marking():
     assert np.all(occupancy.log_odds <= 0)
 
 
-def test_integrate_is_the_same_on_one_thread_and_many():
-    wall = _wall(3.0)
-    sensor = [0.3, 1.2, -0.4]
+@pytest.mark.parametrize("sensor", [[0.3, 1.2, -0.4], [0.0, 0.0, 0.0]])
+def test_integrate_is_the_same_on_one_thread_and_many(sensor):
+    # Every point three times, shuffled: rays of different threads end in
+    # one cell, which must be updated once (the radial path's hit marks).
+    wall = np.random.default_rng(7).permutation(np.repeat(_wall(3.0), 3, axis=0))
     before = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
@@ -65,6 +67,7 @@ def test_integrate_is_the_same_on_one_thread_and_many():
     finally:
         numba.set_num_threads(before)
     np.testing.assert_array_equal(one.log_odds, many.log_odds)
+    np.testing.assert_array_equal(one.log_odds, _reference_log_odds(GRID, wall, sensor))
 
 
 def test_decay_and_save_load(tmp_path):

@@ -11,6 +11,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
+from .atomic import exchange, load_relaxed, store_relaxed
 from .exact import (
     PHI,
     THETA,
@@ -930,10 +931,17 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
     more than this pass. ``words`` is ``free`` seen as uint64 (rows padded to
     a multiple of 8 bytes): most of a scan's cells are untouched, and eight
     at a time are skipped with one test.
+
+    The hits go into row 0 first, on all threads: ``HIT`` replaces the byte,
+    since a hit wins over a miss, and rays that end in one cell store the
+    same value there (``atomic.store_relaxed``).
     """
-    for ray in range(hits.shape[0]):
-        if hits[ray] >= 0:
-            free[0, hits[ray]] |= HIT
+    first = free[0]
+    n_rays = hits.shape[0]
+    for block in prange((n_rays + BLOCK - 1) // BLOCK):
+        for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            if hits[ray] >= 0:
+                store_relaxed(first, hits[ray], HIT)
     threads = free.shape[0]
     n_cells = log_odds.shape[0]
     n_columns = n_cells // n_rho
@@ -1031,10 +1039,18 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
     thread's free extent of its column; ``hit_mask`` (n_cells,) uint8, zero,
     marks the hit cells so a hit wins and each is updated once. Only the
     columns' free runs and the hits are visited, not the whole map.
+
+    All three passes run on all threads. Rays that end in one cell store the
+    same mark (``atomic.store_relaxed``); in the last pass exactly one of
+    them takes it back (``atomic.exchange``) and updates the cell, so the map
+    does not depend on the thread count.
     """
-    for ray in range(hits.shape[0]):
-        if hits[ray] >= 0:
-            hit_mask[hits[ray]] = 1
+    n_rays = hits.shape[0]
+    n_blocks = (n_rays + BLOCK - 1) // BLOCK
+    for block in prange(n_blocks):
+        for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            if hits[ray] >= 0:
+                store_relaxed(hit_mask, hits[ray], 1)
     threads = free_extent.shape[0]
     n_columns = n_theta * n_phi
     for column in prange(n_columns):
@@ -1045,8 +1061,9 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
             cell = shell * n_columns + column
             if hit_mask[cell] == 0:
                 _update(log_odds, cell, False, True, log_hit, log_miss, log_min, log_max)
-    for ray in range(hits.shape[0]):
-        cell = hits[ray]
-        if cell >= 0 and hit_mask[cell] != 0:
-            _update(log_odds, cell, True, False, log_hit, log_miss, log_min, log_max)
-            hit_mask[cell] = 0
+    for block in prange(n_blocks):
+        for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            cell = hits[ray]
+            # The load skips the locked exchange for a cell already taken.
+            if cell >= 0 and load_relaxed(hit_mask, cell) != 0 and exchange(hit_mask, cell, 0) != 0:
+                _update(log_odds, cell, True, False, log_hit, log_miss, log_min, log_max)

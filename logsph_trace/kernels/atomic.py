@@ -1,0 +1,86 @@
+"""Flags that several threads set in one array: single stores with a defined meaning.
+
+The occupancy update marks a scan's hit cells in one shared array of bytes,
+from all threads at once. Two rays that end in the same cell store the same
+flag there; with ordinary stores that is a data race, which LLVM's memory
+model leaves undefined. ``store_relaxed`` and ``load_relaxed`` are atomic
+accesses without ordering (LLVM ``monotonic``): on x86 and AArch64 the same
+single instructions, now with a defined result. ``exchange`` swaps a flag
+out atomically (``xchg``, a locked instruction, so worth a relaxed load
+first), so that of all the rays ending in one cell exactly one takes its
+flag, and the cell is updated once, whichever thread that is.
+
+With ``NUMBA_DISABLE_JIT=1`` both are plain Python.
+"""
+
+import numba
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+if numba.config.DISABLE_JIT:
+
+    def store_relaxed(array, index, value):
+        """Python stand-in: ``array[index] = value``."""
+        array[index] = value
+
+    def load_relaxed(array, index):
+        """Python stand-in: ``array[index]``."""
+        return array[index]
+
+    def exchange(array, index, value):
+        """Python stand-in: set ``array[index]`` to ``value``; return what it held."""
+        old = array[index]
+        array[index] = value
+        return old
+
+else:
+
+    def _element_pointer(context, builder, array_type, array, index):
+        return cgutils.get_item_pointer(context, builder, array_type,
+                                        context.make_array(array_type)(context, builder, array),
+                                        [index], wraparound=False)
+
+    @intrinsic
+    def store_relaxed(typingctx, array, index, value):
+        """``array[index] = value`` as one atomic store, unordered (1D integer
+        array; no bounds check: the caller checks the index)."""
+        sig = types.void(array, index, value)
+
+        def codegen(context, builder, signature, args):
+            array_type, _, value_type = signature.args
+            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
+            item = context.cast(builder, args[2], value_type, array_type.dtype)
+            size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
+            builder.store_atomic(item, pointer, "monotonic", size)
+            return context.get_dummy_value()
+
+        return sig, codegen
+
+    @intrinsic
+    def load_relaxed(typingctx, array, index):
+        """``array[index]`` as one atomic load, unordered (1D integer array; no
+        bounds check)."""
+        sig = array.dtype(array, index)
+
+        def codegen(context, builder, signature, args):
+            array_type, _ = signature.args
+            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
+            size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
+            return builder.load_atomic(pointer, "monotonic", size)
+
+        return sig, codegen
+
+    @intrinsic
+    def exchange(typingctx, array, index, value):
+        """Set ``array[index]`` to ``value`` atomically and return what it held
+        (1D integer array; no bounds check)."""
+        sig = array.dtype(array, index, value)
+
+        def codegen(context, builder, signature, args):
+            array_type, _, value_type = signature.args
+            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
+            item = context.cast(builder, args[2], value_type, array_type.dtype)
+            return builder.atomic_rmw("xchg", pointer, item, "monotonic")
+
+        return sig, codegen
