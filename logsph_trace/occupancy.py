@@ -10,6 +10,8 @@ actually stops at, so an object hidden behind another is not reported as
 looked at.
 """
 
+import contextlib
+import threading
 import time
 import zipfile
 from dataclasses import dataclass
@@ -75,6 +77,32 @@ def _coherent_plan(grid, origin, n_rays):
     narrowest = min(np.min(np.diff(grid.theta_edges)), np.min(np.diff(phi)))
     step = 0.5 * narrowest * grid.rho_edges[0] / (grid.rho_edges[0] + distance)
     return int(np.clip(np.ceil(2.0 / step), 8, COHERENT_MAX_BINS))
+
+
+# A scan's flags (one row per thread) are kept zero for this Python thread's
+# next scan up to this size; a larger set is freed after its scan.
+KEEP_FLAG_BYTES = 1 << 27
+_flags = threading.local()
+
+
+@contextlib.contextmanager
+def _zeroed_scratch(kind, shape, dtype):
+    """Yield a zero array of ``shape`` that the block must leave zero; one per ``kind``.
+
+    The kernels that read a scan's flags clear them as they go
+    (``apply_scan``, ``apply_radial``), so the next scan in this Python thread
+    reuses them instead of zeroing fresh memory on one thread (a 4 MB
+    ``np.zeros`` per thread and scan on the benchmark's map). Held per Python
+    thread, so concurrent scans never share them; an exception drops them.
+    """
+    held = getattr(_flags, kind, None)
+    setattr(_flags, kind, None)  # taken: kept again only when the block ends cleanly
+    if held is None or held.shape != shape or held.dtype != dtype:
+        held = None  # the old set is freed before the new one is made
+        held = np.zeros(shape, dtype=dtype)
+    yield held
+    if held.nbytes <= KEEP_FLAG_BYTES:
+        setattr(_flags, kind, held)
 
 
 def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
@@ -310,26 +338,27 @@ class OccupancyGrid:
         elif not np.any(origin):
             # The egocentric case: every ray is radial. Hits are map indices.
             hits = np.empty(points.shape[0], dtype=np.int64)
-            free_extent = np.zeros((threads, grid.n_theta * grid.n_phi), dtype=np.int64)
-            start = lap("prepare", start)
-            _kernels.mark_radial(points, max_range, grid.kernel_args(), free_extent, hits)
-            start = lap("mark", start)
-            _kernels.apply_radial(self.log_odds.reshape(-1), free_extent, hits,
-                                  np.zeros(n_cells, dtype=np.uint8), grid.n_theta, grid.n_phi,
-                                  *update)
-            lap("apply", start)
+            with _zeroed_scratch("extents", (threads, grid.n_theta * grid.n_phi),
+                                 np.int64) as free_extent, \
+                    _zeroed_scratch("hit_mask", (n_cells,), np.uint8) as hit_mask:
+                start = lap("prepare", start)
+                _kernels.mark_radial(points, max_range, grid.kernel_args(), free_extent, hits)
+                start = lap("mark", start)
+                _kernels.apply_radial(self.log_odds.reshape(-1), free_extent, hits, hit_mask,
+                                      grid.n_theta, grid.n_phi, *update)
+                lap("apply", start)
         else:
             # Each ray's direction, length and hit are set up in the kernels, in
             # parallel. Hits are column-major (see apply_scan).
             hits = np.empty(points.shape[0], dtype=np.int64)
-            words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
-            free = words.view(np.uint8)  # the same memory, a byte per cell
-            start = lap("prepare", start)
-            _mark_off_centre(grid, origin, points, max_range, free, hits, words)
-            start = lap("mark", start)
-            _kernels.apply_scan(self.log_odds.reshape(-1), free, words, hits, grid.n_rho,
-                                *update)
-            lap("apply", start)
+            with _zeroed_scratch("flags", (threads, -(-n_cells // 8)), np.uint64) as words:
+                free = words.view(np.uint8)  # the same memory, a byte per cell
+                start = lap("prepare", start)
+                _mark_off_centre(grid, origin, points, max_range, free, hits, words)
+                start = lap("mark", start)
+                _kernels.apply_scan(self.log_odds.reshape(-1), free, words, hits, grid.n_rho,
+                                    *update)
+                lap("apply", start)
         if labels is not None:
             if np.any(origin):  # the walk's hits are column-major (see apply_scan)
                 hit = hits >= 0

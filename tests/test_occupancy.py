@@ -258,3 +258,26 @@ def test_fixation_probability_counts_a_re_entered_cell_once():
         assert {c for c, v in want.items() if v > 0} == set(map(tuple, np.argwhere(got > 0)))
         for cell, value in want.items():
             assert got[cell] == pytest.approx(value, rel=1e-12, abs=1e-15)
+
+
+@pytest.mark.parametrize("sensor", [[0.0, 0.0, 0.0], [0.06, 0.08, 0.0], [0.3, 1.2, -0.4]])
+def test_a_scan_leaves_its_flags_zero_for_the_next(sensor):
+    # The flags are reused by this thread's next scan: each scan must leave
+    # them zero, and a second scan must come out as it would on fresh ones.
+    from logsph_trace import occupancy as module
+
+    def drop():
+        for kind in ("flags", "extents", "hit_mask"):
+            setattr(module._flags, kind, None)
+
+    first, second = _wall(3.0), np.repeat(_wall(5.0, 90), 2, axis=0) * [1.0, -0.5, 1.0]
+    drop()
+    reused = OccupancyGrid(GRID).integrate(first, sensor)
+    kept = [getattr(module._flags, kind) for kind in ("flags", "extents", "hit_mask")]
+    assert any(a is not None for a in kept)
+    assert not any(a.any() for a in kept if a is not None)
+    reused.integrate(second, sensor)
+    fresh = OccupancyGrid(GRID).integrate(first, sensor)
+    drop()
+    fresh.integrate(second, sensor)
+    np.testing.assert_array_equal(reused.log_odds, fresh.log_odds)

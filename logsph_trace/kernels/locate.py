@@ -150,6 +150,22 @@ def row_norms(vectors, out):
         out[row] = norm3(vectors[row, 0], vectors[row, 1], vectors[row, 2])
 
 
+@jit(parallel=True)
+def all_finite(values):
+    """Whether every value of a 1D float64 array is finite (no NaN, no inf).
+
+    ``x - x`` is 0 for a finite x and NaN otherwise. In blocks on all
+    threads, with no temporary array (numpy's ``isfinite(...).all()`` makes
+    one and runs on one thread).
+    """
+    n = values.shape[0]
+    bad = 0
+    for block in prange((n + 4095) // 4096):
+        for k in range(block * 4096, min(n, (block + 1) * 4096)):
+            bad += not values[k] - values[k] == 0.0
+    return bad == 0
+
+
 @jit
 def azimuth(x, z):
     """theta = atan2(x, z); ``+ 0.0`` turns -0.0 into +0.0 so the y axis has theta 0."""

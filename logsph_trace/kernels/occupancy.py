@@ -934,7 +934,8 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
 
     The hits go into row 0 first, on all threads: ``HIT`` replaces the byte,
     since a hit wins over a miss, and rays that end in one cell store the
-    same value there (``atomic.store_relaxed``).
+    same value there (``atomic.store_relaxed``). The flags are left zero,
+    ready for the next scan: only words that were not are written.
     """
     first = free[0]
     n_rays = hits.shape[0]
@@ -959,6 +960,8 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
                 i = index % n_rho
                 _update(log_odds, i * n_columns + index // n_rho, (bits & HIT) != 0,
                         (bits & FREE) != 0, log_hit, log_miss, log_min, log_max)
+        for thread in range(threads):
+            words[thread, word] = 0
 
 
 @jit(inline="always")
@@ -1043,7 +1046,8 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
     All three passes run on all threads. Rays that end in one cell store the
     same mark (``atomic.store_relaxed``); in the last pass exactly one of
     them takes it back (``atomic.exchange``) and updates the cell, so the map
-    does not depend on the thread count.
+    does not depend on the thread count. ``free_extent`` and ``hit_mask``
+    are left zero, ready for the next scan.
     """
     n_rays = hits.shape[0]
     n_blocks = (n_rays + BLOCK - 1) // BLOCK
@@ -1057,6 +1061,9 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
         extent = free_extent[0, column]
         for thread in range(1, threads):
             extent = max(extent, free_extent[thread, column])
+        if extent > 0:
+            for thread in range(threads):
+                free_extent[thread, column] = 0
         for shell in range(extent):
             cell = shell * n_columns + column
             if hit_mask[cell] == 0:
