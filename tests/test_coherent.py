@@ -305,3 +305,24 @@ def test_a_column_with_a_ray_in_it_is_in_view(grid, sensor):
         kernels.columns_in_view(origin, grid.kernel_args(), cone, view)
         assert view[j * grid.n_phi + k] == 1
         assert view.mean() < 1.0 or cone[3] > 1.0  # and it does pass some columns over
+
+
+@pytest.mark.parametrize("n_rho, skip", [(5, 4), (8, 7), (13, 12), (13, 5), (64, 63), (150, 63),
+                                         (150, 17)])
+def test_near_masks_name_every_flagged_cell_below_skip(n_rho, skip):
+    # Against a plain reading of the flags: columns that start anywhere in
+    # a word, flags from 1 to 3 threads, sparse and dense, columns out of view.
+    rng = np.random.default_rng(n_rho * 100 + skip)
+    n_columns = 37
+    n_cells = n_rho * n_columns
+    for threads, density in ((1, 0.3), (2, 0.02), (3, 0.6)):
+        words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
+        free = words.view(np.uint8)
+        free[:, :n_cells] = (rng.random((threads, n_cells)) < density) * rng.integers(
+            1, 3, (threads, n_cells))
+        view = (rng.random(n_columns) < 0.8).astype(np.uint8)
+        masks = np.empty(n_columns, dtype=np.uint64)
+        kernels.near_masks(free, words, n_rho, skip, view, masks)
+        flagged = free[:, :n_cells].reshape(threads, n_columns, n_rho).any(axis=0)[:, :skip]
+        want = (flagged * (1 << np.arange(skip, dtype=np.uint64))).sum(axis=1, dtype=np.uint64)
+        np.testing.assert_array_equal(masks, np.where(view != 0, want, 0).astype(np.uint64))

@@ -688,16 +688,20 @@ def near_masks(free, words, n_rho, skip, view, masks):
     threads = free.shape[0]
     for column in prange(masks.shape[0]):
         mask = np.uint64(0)
-        for thread in range(threads if view[column] else 0):
-            i = 0
-            while i < skip:
-                index = column * n_rho + i
-                if index % 8 == 0 and i + 8 <= skip and words[thread, index // 8] == 0:
-                    i += 8
-                    continue
-                if free[thread, index] != 0:
-                    mask |= np.uint64(1) << np.uint64(i)
-                i += 1
+        i = 0
+        while i < (skip if view[column] else 0):
+            # The word holding cell i, every thread's flags OR-ed: its bytes
+            # (little-endian) are the cells from ``index`` to the word's end.
+            index = column * n_rho + i
+            word = index // 8
+            flags = words[0, word]
+            for thread in range(1, threads):
+                flags |= words[thread, word]
+            if flags != 0:
+                for index in range(index, min(word * 8 + 8, column * n_rho + skip)):
+                    if (flags >> np.uint64(8 * (index - word * 8))) & np.uint64(0xFF) != 0:
+                        mask |= np.uint64(1) << np.uint64(index - column * n_rho)
+            i = word * 8 + 8 - column * n_rho
         masks[column] = mask
 
 
@@ -953,9 +957,9 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
         if any_bits == 0:
             continue
         for index in range(word * 8, min(word * 8 + 8, n_cells)):
-            bits = 0
-            for thread in range(threads):
-                bits |= free[thread, index]
+            # Byte ``index - 8 word`` of the word (little-endian, as every
+            # platform Numba runs on): every thread's flags of the cell at once.
+            bits = (any_bits >> np.uint64(8 * (index - word * 8))) & np.uint64(0xFF)
             if bits != 0:
                 i = index % n_rho
                 _update(log_odds, i * n_columns + index // n_rho, (bits & HIT) != 0,
