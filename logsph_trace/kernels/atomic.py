@@ -10,7 +10,7 @@ out atomically (``xchg``, a locked instruction, so worth a relaxed load
 first), so that of all the rays ending in one cell exactly one takes its
 flag, and the cell is updated once, whichever thread that is.
 
-With ``NUMBA_DISABLE_JIT=1`` both are plain Python.
+With ``NUMBA_DISABLE_JIT=1`` all three are plain Python.
 """
 
 import numba
