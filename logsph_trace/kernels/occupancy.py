@@ -959,7 +959,7 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
         for index in range(word * 8, min(word * 8 + 8, n_cells)):
             # Byte ``index - 8 word`` of the word (little-endian, as every
             # platform Numba runs on): every thread's flags of the cell at once.
-            bits = (any_bits >> np.uint64(8 * (index - word * 8))) & np.uint64(0xFF)
+            bits = np.uint8((any_bits >> np.uint64(8 * (index - word * 8))) & np.uint64(0xFF))
             if bits != 0:
                 i = index % n_rho
                 _update(log_odds, i * n_columns + index // n_rho, (bits & HIT) != 0,
