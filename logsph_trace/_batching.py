@@ -32,9 +32,9 @@ of bounded size.
   final place in the output (``exact.gather_chunks``), which therefore
   grows by exact counts. A chunk that runs out of room stops before the
   ray that might not fit; the chunks after it are traced again in the next
-  wave (rare: the sizing leaves a quarter spare). The output is allocated once from the first wave's
-  segments per ray with 3% to spare, grows in place if that was too little,
-  and shrinks to the exact size at the end.
+  wave (rare: the sizing leaves a quarter spare). The output is allocated
+  once from the first wave's segments per ray with 3% to spare, grows in
+  place if that was too little, and shrinks to the exact size at the end.
 * The exact method and the Amanatides-Woo baseline run on all three
   (their ``BatchKernels``), so their timings compare like for like. The
   paper's baselines (``run_csr``) take a count pass, a prefix sum and a

@@ -964,6 +964,9 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
                 i = index % n_rho
                 _update(log_odds, i * n_columns + index // n_rho, (bits & HIT) != 0,
                         (bits & FREE) != 0, log_hit, log_miss, log_min, log_max)
+        # Cleared only here, for words that held flags: clearing in the OR
+        # loop above made it branch on every word, most of them zero (apply
+        # 1.5 -> 2.6 ms on one thread, table scan 10 cm off).
         for thread in range(threads):
             words[thread, word] = 0
 
