@@ -2,7 +2,8 @@
 
 Run from a checkout: ``python bench/parallel_memory.py [N_RAYS]`` (default 300,000 random
 rays on the 128^3 grid of bench.run). For the serial pass, the public parallel call (two
-halves on two threads, waves on more) and the waves forced (at least three chunks), it prints
+halves on two threads, ordered chunks on more) and the ordered chunks forced (at least three
+workers), it prints
 the best time of two calls and, over one more call, as multiples of the output's bytes:
 
 * resident: the growth of the process's peak resident memory (Linux's ``VmHWM``, restarted
@@ -11,7 +12,8 @@ the best time of two calls and, over one more call, as multiples of the output's
 * held: the bytes the result's arrays keep allocated (their bases).
 
 Resident figures include the pages at the output's edges (huge pages of 2 MiB) and, for
-the halves, the front thread's block scratch.
+the halves, the front thread's block scratch; the ordered chunks' scratch is kept between
+calls, so a call after the first adds none.
 """
 
 import sys
@@ -61,12 +63,12 @@ def main(n_rays):
     origins, directions = _validate.rays(rng.uniform(-8, 8, (n_rays, 3)),
                                          rng.normal(size=(n_rays, 3)))
     far = np.full(n_rays, np.inf)
-    chunks = max(3, numba.get_num_threads())
+    workers = max(3, numba.get_num_threads())
     paths = {
         "serial": lambda: lt.trace_many(grid, origins, directions, parallel=False),
         "parallel": lambda: lt.trace_many(grid, origins, directions, parallel=True),
-        f"waves ({chunks} chunks)": lambda: _batching.run_exact_parallel(
-            grid, origins, directions, far, grid.kernel_args(), chunks),
+        f"ordered ({workers} workers)": lambda: _batching.run_exact_ordered(
+            grid, origins, directions, far, workers),
     }
     print(f"{n_rays:,} rays, 128^3 cells, {numba.get_num_threads()} threads")
     for name, call in paths.items():
@@ -82,7 +84,7 @@ def main(n_rays):
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
         resident = "n/a" if grown is None else f"{grown / output:.3f}"
-        print(f"{name:>18}: {best * 1e3:6.0f} ms  output {output / 2**20:.0f} MiB  "
+        print(f"{name:>20}: {best * 1e3:6.0f} ms  output {output / 2**20:.0f} MiB  "
               f"resident/output {resident}  allocated/output {peak / output:.3f}  "
               f"held/output {held / output:.3f}")
 

@@ -9,7 +9,7 @@ Machines are noisy: the two kernels are timed in alternating rounds of the
 same run and the figure that matters is their ratio. Each timing is the best
 of ``--repeats`` rounds of ``trace_many`` (output arrays included). Both
 kernels batch the same way: one appending pass on one thread, two halves
-meeting in the middle on two, waves of chunks on more; per thread count the
+meeting in the middle on two, ordered chunks on more; per thread count the
 table gives the time in each phase.
 """
 
@@ -67,12 +67,11 @@ def measure(n_rays, cells, repeats, thread_counts):
     most = numba.get_num_threads()
     buffers = lt.TraceBuffers()  # the robot's case: the same arrays every frame
     lt.trace_many(grid, origins, directions, out=buffers)
-    # The waves, which trace_many takes from 3 threads on, timed on every
-    # thread count: on a 2-core machine this is the only view of their phases.
+    # The ordered chunks, which trace_many takes from 3 threads on, timed on
+    # every thread count: on a 2-core machine this is the only view of them.
     unit_origins, unit_directions = _validate.rays(origins, directions)
     far = np.full(n_rays, np.inf)
-    args = grid.kernel_args()
-    waves = [t for t in thread_counts if t > 1]
+    ordered = [t for t in thread_counts if t > 1]
     runs = {}
     for _ in range(repeats):  # alternate everything so that all see the same noise
         for threads in thread_counts:
@@ -84,9 +83,9 @@ def measure(n_rays, cells, repeats, thread_counts):
                 ("exact_buffers", lambda: lt.trace_many(grid, origins, directions,
                                                         parallel=parallel, out=buffers)),
             ]
-            if threads in waves:
-                calls.append(("exact_waves", lambda: _batching.run_exact_parallel(
-                    grid, unit_origins, unit_directions, far, args, min(threads, most))))
+            if threads in ordered:
+                calls.append(("exact_ordered", lambda: _batching.run_exact_ordered(
+                    grid, unit_origins, unit_directions, far, min(threads, most))))
             for name, call in calls:
                 runs[name, threads] = timed(call, runs.get((name, threads)),
                                             keep=lambda traces: int(traces.cells.shape[0]))
@@ -94,7 +93,7 @@ def measure(n_rays, cells, repeats, thread_counts):
 
     def summary(name, threads):
         run = runs[name, threads]
-        one = runs["exact" if name == "exact_waves" else name, 1]["seconds"]
+        one = runs["exact" if name == "exact_ordered" else name, 1]["seconds"]
         return {
             "threads": threads,
             "seconds": run["seconds"],
@@ -113,7 +112,7 @@ def measure(n_rays, cells, repeats, thread_counts):
     exact = [summary("exact", t) for t in thread_counts]
     reference = [summary("amanatides_woo", t) for t in thread_counts]
     reused = [summary("exact_buffers", t) for t in thread_counts]
-    in_waves = [summary("exact_waves", t) for t in waves]
+    in_order = [summary("exact_ordered", t) for t in ordered]
     return {
         "rays": n_rays,
         "cells_per_axis": cells,
@@ -121,13 +120,13 @@ def measure(n_rays, cells, repeats, thread_counts):
         "exact": exact,
         "amanatides_woo": reference,
         "exact_into_reused_buffers": reused,
-        "exact_in_waves": in_waves,
+        "exact_in_ordered_chunks": in_order,
         "exact_over_amanatides_woo_per_voxel": [
             e["ns_per_voxel"] / r["ns_per_voxel"] for e, r in zip(exact, reference)],
     }
 
 
-PHASES = ("bound", "trace", "allocate", "gather", "shrink", "other")
+PHASES = ("bound", "trace", "allocate", "shrink", "other")
 SERIAL = ("bound", "shrink", "other")
 
 
@@ -154,7 +153,7 @@ def table(result, first_call):
     ]
     for name, rows in (("exact", result["exact"]), ("Amanatides-Woo", result["amanatides_woo"]),
                        ("exact, out=TraceBuffers", result["exact_into_reused_buffers"]),
-                       ("exact, waves", result.get("exact_in_waves", []))):
+                       ("exact, ordered chunks", result.get("exact_in_ordered_chunks", []))):
         for row in rows:
             phases = " | ".join(f"{row['phases_s'].get(p, 0.0) * 1e3:.1f}" for p in PHASES)
             lines.append(f"| {name} | {row['threads']} | {row['seconds'] * 1e3:.1f} "
@@ -162,9 +161,10 @@ def table(result, first_call):
                          f"| {100 * row['serial_part_of_one_thread']:.1f}% |")
     lines += ["", "speed-up: over the same call on 1 thread; serial part: the phases that run "
               "on one thread whatever the thread count (bound, shrink, other), as a share of the "
-              "one-thread time; out=TraceBuffers: the same arrays reused every call; waves: "
-              "the path trace_many takes from 3 threads on (2 threads take the halves), "
-              "forced at every thread count above 1, speed-up over exact on 1 thread"]
+              "one-thread time; out=TraceBuffers: the same arrays reused every call; ordered "
+              "chunks: the path trace_many takes from 3 threads on (2 threads take the "
+              "halves), forced at every thread count above 1, speed-up over exact on 1 "
+              "thread"]
     if first_call:
         lines += [
             "",

@@ -23,18 +23,20 @@ of bounded size.
   rays, with a margin; the result is views of the stretch written, and the
   reserved pages around it are never touched (address space, not memory).
   Should a half run out of room (a sample off by more than the margin) or
-  the reservation not fit in memory, the batch goes to the waves.
-* **More threads** (``run_waves``): the rays are taken in waves. A
-  wave gives each thread a contiguous chunk of rays, sized from the segments
-  per ray so far to fill ``WAVE_FILL`` of a fixed scratch region
-  (``WAVE_SEGMENTS`` per thread), traced there (``exact.trace_chunks``); the
-  chunks are then copied, in parallel and bypassing the cache, to their
-  final place in the output (``exact.gather_chunks``), which therefore
-  grows by exact counts. A chunk that runs out of room stops before the
-  ray that might not fit; the chunks after it are traced again in the next
-  wave (rare: the sizing leaves a quarter spare). The output is allocated
-  once from the first wave's segments per ray with 3% to spare, grows in
-  place if that was too little, and shrinks to the exact size at the end.
+  the reservation not fit in memory, the batch goes to the ordered chunks.
+* **More threads** (``run_ordered``): the rays are cut into small chunks,
+  taken in order by the threads from a shared counter. A thread traces its
+  chunk into one of its two scratch buffers (small enough to stay in the
+  cache), posts the chunk's count, and copies the chunk it traced before to
+  its place (``kernels.ordered``: a chunk starts where the one before it
+  ends, and whoever posts the last count a start depends on publishes it).
+  Every segment is written to the output once, bypassing the cache, by the
+  thread that traced it; nothing runs on one thread but the sample of
+  bounds, and no thread waits for the others to end a round. The output is reserved
+  like the halves', from a sample of bounds with a margin, and shrinks in
+  place to the exact size at the end; should it be too small (a sample off
+  by more than the margin), the rows placed so far stay, the output grows,
+  and the rest is traced again.
 * The exact method and the Amanatides-Woo baseline run on all three
   (their ``BatchKernels``), so their timings compare like for like. The
   paper's baselines (``run_csr``) take a count pass, a prefix sum and a
@@ -43,9 +45,9 @@ of bounded size.
   (``exact.bound_counts``: each ray's set-up, no stepping), so none can
   overflow; their segments are read once, by the aggregation.
 
-The waves' and the cones' scratch arrays are per Python thread and reused
-between calls (``scratch_segments``), unless one call needed more than
-``KEEP_SCRATCH_SEGMENTS``.
+The ordered path's and the cones' scratch arrays are per Python thread and
+reused between calls (``scratch_segments``), unless one call needed more
+than ``KEEP_SCRATCH_SEGMENTS``.
 
 Every path runs the same per-ray code and each ray writes only its own slice
 or region, so the output does not depend on the number of threads.
@@ -207,36 +209,41 @@ def run_serial(span, inputs, n_rays, worst, buffers=None):
 # rays 1.88 ms against 1.78 serial; 2,000 3.30-3.36 against 3.30; 3,000
 # 4.62-4.68 against 4.71; 4,000 5.38-5.98 against 6.25-6.33).
 PARALLEL_MIN_RAYS = 2048
-# Scratch per thread for a wave of the parallel path, in segments (28 bytes each):
-# a few MB, so a wave's copy to the output reads from cache.
-WAVE_SEGMENTS = 1 << 17
-# A wave gives each thread about this share of its scratch, by the segments per
-# ray seen so far; a chunk that runs out of room ends the wave early.
-WAVE_FILL = 0.75
+# A chunk of the ordered path has as many rays as fit in this many segments
+# (28 bytes each) at ``max_segments`` per ray, so it always fits its scratch
+# buffer. Its rays write about a tenth of that on bench.run's grid (404 rays,
+# 670 KB), and only those pages of the buffer are ever touched. Larger chunks
+# meet fewer times on a page of the output whose first write faults it in:
+# on 2 threads, 100,000 rays into fresh arrays, best of 7, two runs (ms):
+# 1 << 15 75.4-75.8, 1 << 16 75.2-76.2, 1 << 17 74.5, 1 << 18 72.8-73.3,
+# 1 << 19 71.4-71.8; into reused arrays 62.8-63.6 for all of them.
+ORDERED_SEGMENTS = 1 << 18
 
 
 class BatchKernels(NamedTuple):
     """One method's kernels for the batch paths (``exact.trace_*``, ``cartesian.box_*``).
 
-    ``span``: one thread, appending (``run_serial``); ``chunks``: waves
-    (``run_waves``); ``halves`` and ``bounds``: two threads meeting in the
-    middle (``run_halves``). ``bounds(*bound_inputs, out)`` writes an upper
-    bound on each ray's segments.
+    ``span``: one thread, appending (``run_serial``); ``halves``: two
+    threads meeting in the middle (``run_halves``); ``ordered``: chunks
+    placed in order (``run_ordered``). ``bounds(*bound_inputs, out)`` writes
+    an upper bound on each ray's segments (both parallel paths reserve their
+    output from a sample of them).
     """
 
     span: object
-    chunks: object
     halves: object
+    ordered: object
     bounds: object
 
 
 def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, parallel, buffers=None):
-    """One appending pass (``run_serial``), two halves (``run_halves``) or waves (``run_waves``).
+    """Trace in one pass (``run_serial``), two halves (``run_halves``) or ordered chunks.
 
-    All run the same per-ray code, so the outputs are identical. A batch too
-    small to split, or one thread, takes the serial pass; two threads take
-    the halves, which pack nothing, unless their reservation would not fit
-    in memory; more threads take the waves.
+    Ordered chunks: ``run_ordered``. All run the same per-ray code, so the
+    outputs are identical. A batch too small to split, or one thread, takes
+    the serial pass; two threads take the halves, which copy only the front
+    half, unless their reservation would not fit in memory or a half ran out
+    of room; more threads, and those cases, take the ordered chunks.
     """
     threads = numba.get_num_threads() if parallel else 1
     if threads == 1 or n_rays < PARALLEL_MIN_RAYS:
@@ -245,10 +252,10 @@ def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, paralle
         traces = run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers)
         if traces is not None:
             return traces
-    return run_waves(kernels.chunks, inputs, n_rays, worst, threads, buffers)
+    return run_ordered(kernels, inputs, bound_inputs, n_rays, worst, threads, buffers)
 
 
-EXACT_KERNELS = BatchKernels(_exact.trace_span, _exact.trace_chunks, _exact.trace_halves,
+EXACT_KERNELS = BatchKernels(_exact.trace_span, _exact.trace_halves, _exact.trace_ordered,
                              _exact.bound_counts)
 
 
@@ -263,10 +270,10 @@ def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
                      origins.shape[0], int(_exact.max_segments(*grid.shape)), parallel, buffers)
 
 
-# run_halves reserves this much more than the sampled bounds promise; the
-# bounds are upper bounds (1.0-1.6x the segments on the benchmark's rays), so
-# a half outgrows its room only when the sample is off by more than this.
-HALVES_MARGIN = 1.25
+# The parallel paths reserve this much more than the sampled bounds promise;
+# the bounds are upper bounds (1.0-1.6x the segments on the benchmark's rays),
+# so the output outgrows its room only when the sample is off by more than this.
+RESERVE_MARGIN = 1.25
 # The front thread copies each block of segments once more (out of its block
 # scratch, with non-temporal stores: ``stream.stream_segments``), so it gets
 # less than half of the bounds' sum. On the exact method, one thread, the
@@ -277,14 +284,39 @@ HALVES_MARGIN = 1.25
 # 72.0-72.6 / 64.9-65.8. Amanatides-Woo, memory-bound on two threads there,
 # ran the same from 0.42 to 0.48 before the stores were non-temporal.
 HALVES_FRONT_SHARE = 0.47
-# Rays run_halves samples for their bounds, plus one in 512; at most one in 16
-# (a ray's set-up costs about a quarter of tracing it on bench.run's grid),
-# but 64 at least.
-HALVES_SAMPLES = 512
+# Rays sampled for their bounds, plus one in 512; at most one in 16 (a ray's
+# set-up costs about a quarter of tracing it on bench.run's grid), but 64 at
+# least.
+BOUND_SAMPLES = 512
 # A reservation at least this large is checked against the available memory
 # first (reading it costs about 0.1 ms); a smaller one that cannot be had
 # fails in numpy with a MemoryError of its own.
-HALVES_CHECKED_BYTES = 1 << 28
+CHECKED_BYTES = 1 << 28
+
+
+def _sampled_bounds(kernels, bound_inputs, n_rays):
+    """Upper bounds on the segments of the rays, sampled: (strata, bounds).
+
+    One ray at random from each of equal strata (``strata[i]:strata[i + 1]``),
+    so the sample is in order and spread evenly; ``bounds[i]`` is that ray's
+    bound (``kernels.bounds``: its set-up, no stepping).
+    """
+    origins, directions, *rest = bound_inputs
+    samples = min(n_rays, max(64, min(n_rays // 16, BOUND_SAMPLES + n_rays // 512)))
+    strata = np.linspace(0, n_rays, samples + 1).astype(np.int64)
+    rows = strata[:-1] + (np.random.default_rng(0).random(samples)
+                          * (strata[1:] - strata[:-1])).astype(np.int64)
+    bounds = np.empty(samples, dtype=np.int64)
+    kernels.bounds(origins[rows], directions[rows], *rest, bounds)
+    return strata, bounds
+
+
+def _fits_in_memory(length):
+    """Return False when ``length`` segments are known not to fit in the available memory."""
+    if length * SEGMENT_BYTES < CHECKED_BYTES:
+        return True
+    available = validate.available_memory()
+    return available is None or length * SEGMENT_BYTES <= available
 
 
 def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
@@ -300,34 +332,24 @@ def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
     The result is views of that stretch; the reserved pages outside it are
     never touched, so they cost address space, not memory.
 
-    Where to split and how much room each half needs come from upper bounds
-    (``kernels.bounds``: a ray's set-up, no stepping) on a sample of the
-    rays (one at random from each of equal strata), scaled up and given
-    ``HALVES_MARGIN`` to spare. ``n_rays`` must be at least 2. Returns None
-    when the reservation would not fit in the available memory (before
-    tracing) or a half ran out of room (after: the caller then traces the
-    batch again in waves; it takes a sample off by more than the margin).
+    Where to split and how much room each half needs come from sampled
+    bounds (``_sampled_bounds``), scaled up and given ``RESERVE_MARGIN`` to
+    spare. ``n_rays`` must be at least 2. Returns None when the reservation
+    would not fit in the available memory (before tracing) or a half ran out
+    of room (after: the caller then traces the batch again in ordered
+    chunks; it takes a sample off by more than the margin).
     """
     start = time.perf_counter()
-    origins, directions, *rest = bound_inputs
-    # One random ray from each of ``samples`` equal strata: in order, spread evenly.
-    samples = min(n_rays, max(64, min(n_rays // 16, HALVES_SAMPLES + n_rays // 512)))
-    strata = np.linspace(0, n_rays, samples + 1).astype(np.int64)
-    rows = strata[:-1] + (np.random.default_rng(0).random(samples)
-                          * (strata[1:] - strata[:-1])).astype(np.int64)
-    bounds = np.empty(samples, dtype=np.int64)
-    kernels.bounds(origins[rows], directions[rows], *rest, bounds)
+    strata, bounds = _sampled_bounds(kernels, bound_inputs, n_rays)
     # The bounds up to each stratum's end, scaled to its rays, with the margin.
-    mass = np.cumsum(bounds * (strata[1:] - strata[:-1])) * HALVES_MARGIN
+    mass = np.cumsum(bounds * (strata[1:] - strata[:-1])) * RESERVE_MARGIN
     cut = min(max(int(np.searchsorted(mass, HALVES_FRONT_SHARE * mass[-1])), 1),
-              samples - 1)
+              bounds.shape[0] - 1)
     split = int(strata[cut])
     anchor = int(mass[cut - 1]) + worst
     length = anchor + int(mass[-1] - mass[cut - 1]) + worst
-    if length * SEGMENT_BYTES >= HALVES_CHECKED_BYTES:
-        available = validate.available_memory()
-        if available is not None and length * SEGMENT_BYTES > available:
-            return None
+    if not _fits_in_memory(length):
+        return None
     start = lap("bound", start)
     offsets = _ray_offsets(n_rays, buffers)
     held = None if buffers is None else buffers.segments()
@@ -351,100 +373,66 @@ def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
     return traces
 
 
-def run_exact_parallel(grid, origins, directions, t_max, args, threads):
-    """Trace with the exact method in waves of ``threads`` chunks (tests pick the count)."""
-    return run_waves(_exact.trace_chunks, (origins, directions, t_max, args), origins.shape[0],
-                     int(_exact.max_segments(*grid.shape)), threads)
+def run_exact_ordered(grid, origins, directions, t_max, workers):
+    """Trace with the exact method in ordered chunks on ``workers`` (tests pick the count)."""
+    inputs = (origins, directions, t_max, grid.kernel_args())
+    return run_ordered(EXACT_KERNELS, inputs, (origins, directions, inputs[3]), origins.shape[0],
+                       int(_exact.max_segments(*grid.shape)), workers)
 
 
-def run_waves(chunks, inputs, n_rays, worst, threads, buffers=None):
-    """Waves of chunks traced into per-thread scratch, then gathered (see the module docstring).
+def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=None):
+    """Trace in chunks taken in order and placed by the threads that traced them.
 
-    ``chunks(starts, regions, *inputs, cells, t_enter, t_exit, offsets, True,
-    *head, head_start)`` traces chunk ``c``'s rays into its region, stopping
-    before a ray that might not fit (``worst`` segments per ray), chunk 0 into
-    ``head`` from ``head_start`` on when that is >= 0; it returns per chunk
-    the end of its segments and the first row it did not trace.
-    ``buffers``: a ``TraceBuffers`` to write into (the result is views of it).
+    See the module docstring and ``kernels.ordered``.
+    ``kernels.ordered(first_row, chunk_rays, workers, *inputs, *scratch,
+    cells, t_enter, t_exit, offsets, used)`` traces rows ``first_row`` on
+    and places them from segment ``used`` on; it returns per chunk the first
+    row not placed. ``workers`` may exceed the thread count (the output is
+    the same). ``buffers``: a ``TraceBuffers`` to write into (the result is
+    views of it).
     """
     start = time.perf_counter()
+    strata, bounds = _sampled_bounds(kernels, bound_inputs, n_rays)
+    per_ray = float(np.dot(bounds, np.diff(strata))) / n_rays
+    chunk_rays = max(1, ORDERED_SEGMENTS // worst)
+    room = chunk_rays * worst
+    length = int(RESERVE_MARGIN * per_ray * n_rays) + room
+    if not _fits_in_memory(length):
+        # Reserve what there is: should the output need more, it grows, and
+        # that is checked (a MemoryError with the batch's figures).
+        length = int(validate.available_memory() // SEGMENT_BYTES)
+    start = lap("bound", start)
+    # Kept whatever its size: only the pages a chunk writes are ever touched.
+    scratch = scratch_segments(2 * workers * room, "ordered", keep=True)
     offsets = _ray_offsets(n_rays, buffers)
-    in_place = buffers is None  # buffers may be viewed by an earlier result: never resized
-    room = WAVE_SEGMENTS + worst  # every chunk fits at least one ray
-    regions = np.arange(threads + 1, dtype=np.int64) * room
-    loose = scratch_segments(threads * room, "waves")
-    output = None if buffers is None else buffers.segments()
-    used = 0
+    held = None if buffers is None else buffers.segments()
+    output = held if held is not None and held[0].shape[0] >= length else segment_arrays(length)
     row = 0
-    # Rays per chunk: in the first wave as if a ray had 64 segments (a batch of
-    # a few thousand rays is one wave), then from the segments per ray so far.
-    per_chunk = max(1, int(WAVE_FILL * WAVE_SEGMENTS / 64))
-    while row < n_rays:
-        stop = min(n_rays, row + threads * per_chunk)
-        starts = np.linspace(row, stop, threads + 1).astype(np.int64)
-        # After the first wave the output exists, and chunk 0 writes its rays
-        # straight to their place there: 1/threads of the copy saved.
-        direct = output is not None
-        if direct and used + room > output[0].shape[0]:
-            output = grown_output(output, used + room, n_rays, row, used, room,
-                                  in_place, used)
-        start = lap("other", start)
-        head = output if direct else loose
-        ends, reached = chunks(starts, regions, *inputs, *loose, offsets, True, *head,
-                               used if direct else -1)
+    used = 0
+    while True:
+        start = lap("allocate", start)
+        reached = kernels.ordered(row, chunk_rays, workers, *inputs, *scratch, *output, offsets,
+                                  used)
         start = lap("trace", start)
-        # Keep the chunks in order up to the first that ran out of room (with
-        # the rays it traced); the rest of the wave is traced again next time.
-        short = np.flatnonzero(reached < starts[1:])
-        kept = int(short[0]) + 1 if short.size else threads
-        starts = np.append(starts[:kept], reached[kept - 1])
-        ends = ends[:kept]
-        spans = ends - regions[:kept]
-        if direct:
-            spans[0] = ends[0] - used
-        traced = int(np.sum(spans))
-        placed = used + (int(spans[0]) if direct else 0)  # segments already in the output
-        if output is None or used + traced > output[0].shape[0]:
-            start = lap("other", start)
-            output = grown_output(output, used + traced, n_rays, int(starts[-1]), used + traced,
-                                  room, in_place, placed)
-            start = lap("allocate", start)
-        first = 1 if direct else 0
-        _exact.gather_chunks(starts[first:], regions[first:kept + 1], ends[first:], offsets,
-                             *loose, placed, *output)
-        start = lap("gather", start)
-        used += traced
-        row = int(starts[-1])
-        per_chunk = max(1, int(WAVE_FILL * WAVE_SEGMENTS * row / max(used, 1)))
-    if output is None:
-        output = segment_arrays(0)
-    start = lap("other", start)
+        ends = np.minimum(row + chunk_rays * np.arange(1, reached.shape[0] + 1), n_rays)
+        short = np.flatnonzero(reached < ends)
+        if short.size == 0:
+            used = int(offsets[n_rays])
+            break
+        # The output was too small: keep the rows placed, grow, trace the rest.
+        row = int(reached[short[0]])
+        used = int(offsets[row])
+        capacity = output[0].shape[0]
+        expected = int(1.03 * used / row * n_rays) if row else 0
+        capacity = max(expected, capacity + capacity // 2, used + room) + room
+        validate.fits("origins", capacity * SEGMENT_BYTES,
+                      f"tracing {n_rays:,} rays (about {capacity:,} segments)")
+        start = lap("other", start)
+        if buffers is None:  # in place; buffers may be viewed by an earlier result
+            output = tuple(resized(a, capacity) for a in output)
+        else:
+            output = tuple(grown(a, capacity, used) for a in output)
     return _result(offsets, output, used, buffers, start)
-
-
-def grown_output(output, needed, n_rays, rows, segments, spare, in_place, written):
-    """Return the output with room for ``needed`` segments and the rest of the batch.
-
-    The rest is estimated from the ``segments`` per ray over ``rows`` rays so
-    far, with 3% and ``spare`` to spare.
-
-    Allocated fresh and pre-faulted on all threads the first time (``output``
-    None). Grown later (rare: the estimate was short) in place, or, when not
-    ``in_place`` (caller's buffers, which an earlier result may still view),
-    into fresh arrays that get the ``written`` segments so far.
-    """
-    expected = int(1.03 * segments / max(rows, 1) * n_rays) + spare
-    length = max(needed, expected)
-    validate.fits("origins", length * SEGMENT_BYTES,
-                  f"tracing {n_rays:,} rays (about {length:,} segments)")
-    if output is not None and in_place:
-        return tuple(resized(a, length) for a in output)
-    fresh = segment_arrays(length)
-    _exact.touch_pages(*fresh)
-    if output is not None:
-        for old, new in zip(output, fresh):
-            new[:written] = old[:written]
-    return fresh
 
 
 def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays):
@@ -469,9 +457,8 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0
     start = lap("bound", start)
-    ends, _ = _exact.trace_chunks(starts, regions, origins, directions, t_max, args,
-                                  cells, t_enter, t_exit, offsets, False,
-                                  cells, t_enter, t_exit, -1)
+    ends = _exact.trace_chunks(starts, regions, origins, directions, t_max, args, cells, t_enter,
+                               t_exit, offsets)
     lap("trace", start)
     return starts, regions, ends, offsets, cells, t_enter, t_exit
 
@@ -484,19 +471,20 @@ _scratch = threading.local()
 KEEP_SCRATCH_SEGMENTS = 1 << 22
 
 
-def scratch_segments(length, kind="segments"):
+def scratch_segments(length, kind="segments", keep=False):
     """Segment arrays reused by this Python thread, grown as needed; one set per ``kind``.
 
     ``"segments"``: a cone's (its segments are read once, by the aggregation;
     faulting in fresh pages for them each call took longer than tracing into
-    them: 1.0 of 2.0 ms for a 1,000-ray cone, measured). ``"waves"``: the
-    parallel path's wave scratch. Per Python thread, so concurrent calls never
+    them: 1.0 of 2.0 ms for a 1,000-ray cone, measured). ``"ordered"``: the
+    ordered path's chunk buffers. Per Python thread, so concurrent calls never
     share them. Kept only up to ``KEEP_SCRATCH_SEGMENTS``: a larger request
-    (a grid of millions of sectors) gets arrays of its own, freed after use.
+    (a grid of millions of sectors) gets arrays of its own, freed after use,
+    unless ``keep``.
     """
     held = getattr(_scratch, kind, None)
     if held is None or held[0].shape[0] < length:
         held = segment_arrays(length + length // 4)
-        if length <= KEEP_SCRATCH_SEGMENTS:
+        if keep or length <= KEEP_SCRATCH_SEGMENTS:
             setattr(_scratch, kind, held)
     return held

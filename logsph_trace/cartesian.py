@@ -7,7 +7,7 @@ from ._batching import BatchKernels, run_batch
 from .kernels import cartesian as _kernels
 from .traces import Traces
 
-BOX_KERNELS = BatchKernels(_kernels.box_span, _kernels.box_chunks, _kernels.box_halves,
+BOX_KERNELS = BatchKernels(_kernels.box_span, _kernels.box_halves, _kernels.box_ordered,
                            _kernels.box_bounds)
 
 

@@ -43,10 +43,10 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
         each segment written to its final place by the thread that traced it
         (the front half's through a small block scratch; the arrays are views
         of a larger reservation whose other pages are never touched, so they
-        take no memory); on more threads in waves, each thread tracing a
-        chunk of rays into a scratch region of its own, the chunks then copied
-        to their place in parallel. The baselines use a count pass and a
-        fill pass.
+        take no memory); on more threads in small chunks taken in order,
+        each traced into a scratch buffer of its thread's and copied to its
+        place by that thread as soon as the chunks before it are counted.
+        The baselines use a count pass and a fill pass.
     default_t : float
         ``"bisect"`` only: the first step of every search, in length units
         (paper: 1.5531 m).

@@ -26,12 +26,25 @@ def _halves(grid, origins, directions, buffers):
                                 buffers)
 
 
-@pytest.mark.parametrize("path", ["serial", "parallel", "halves"])
+def _ordered(grid, origins, directions, buffers):
+    """The path of three threads or more into ``buffers``, on any machine."""
+    o, d = _validate.rays(origins, directions)
+    args = grid.kernel_args()
+    return _batching.run_ordered(_batching.EXACT_KERNELS, (o, d, np.full(len(o), np.inf), args),
+                                 (o, d, args), len(o), int(_exact.max_segments(*grid.shape)), 3,
+                                 buffers)
+
+
+@pytest.mark.parametrize("path", ["serial", "parallel", "halves", "ordered"])
 def test_reused_buffers_give_the_fresh_result_on_every_call(monkeypatch, path):
     # Batches of growing and shrinking sizes through one set of buffers: the
     # first call finds them empty, later ones too small (they grow) or big
-    # enough (reused as they are); every result equals a fresh trace.
-    monkeypatch.setattr(_batching, "WAVE_SEGMENTS", 2000)  # many waves, chunks overflow
+    # enough (reused as they are); every result equals a fresh trace. The
+    # ordered chunks are a few rays each, and their reservation too small:
+    # the output grows while they are placed, into fresh arrays.
+    monkeypatch.setattr(_batching, "ORDERED_SEGMENTS", 2000)
+    if path == "ordered":
+        monkeypatch.setattr(_batching, "RESERVE_MARGIN", 0.1)
     grid = GRIDS["log_full"]()
     rng = np.random.default_rng(5)
     buffers = lt.TraceBuffers()
@@ -41,6 +54,8 @@ def test_reused_buffers_give_the_fresh_result_on_every_call(monkeypatch, path):
         want = lt.trace_many(grid, origins, directions, parallel=False)
         if path == "halves":
             got = _halves(grid, origins, directions, buffers)
+        elif path == "ordered":
+            got = _ordered(grid, origins, directions, buffers)
         else:
             got = lt.trace_many(grid, origins, directions, parallel=path == "parallel",
                                 out=buffers)
@@ -65,22 +80,25 @@ def test_an_earlier_result_stays_valid_memory_when_buffers_grow():
     np.testing.assert_array_equal(first.cells, kept)
 
 
-def test_parallel_with_buffers_writes_the_first_chunk_in_place():
-    # With buffers big enough from the start, every wave's first chunk is
-    # written straight into them: equal to serial with 1 to 4 chunks per wave.
+def test_ordered_chunks_write_into_buffers_big_enough_from_the_start():
+    # Buffers sized by a first call: the ordered chunks are placed straight
+    # into them, on 1 to 4 workers, and equal the serial pass.
     grid = GRIDS["uniform_partial_wide"]()
     rng = np.random.default_rng(8)
     origins, directions = random_rays(rng, grid, 4000)
     want = lt.trace_many(grid, origins, directions, parallel=False)
     o, d = _validate.rays(origins, directions)
     far = np.full(len(o), np.inf)
-    for threads in (1, 2, 3, 4):
+    for workers in (1, 2, 3, 4):
         buffers = lt.TraceBuffers()
-        lt.trace_many(grid, origins, directions, out=buffers)  # sized by a first call
-        got = _batching.run_waves(_exact.trace_chunks, (o, d, far, grid.kernel_args()),
-                                  len(o), int(_exact.max_segments(*grid.shape)),
-                                  threads, buffers)
+        _ordered(grid, origins, directions, buffers)  # sizes them
+        capacity = buffers.capacity
+        got = _batching.run_ordered(_batching.EXACT_KERNELS, (o, d, far, grid.kernel_args()),
+                                    (o, d, grid.kernel_args()), len(o),
+                                    int(_exact.max_segments(*grid.shape)), workers, buffers)
         assert_same(got, want)
+        assert np.shares_memory(got.t_enter, buffers.t_enter)
+        assert buffers.capacity == capacity
 
 
 def test_out_is_checked():

@@ -35,17 +35,18 @@ def test_bad_box():
         CartesianGrid((0, 0, 0), (1, 1, 1), (2, 0, 2))
 
 
-@pytest.mark.parametrize("wave_segments", [1 << 17, 50])
-def test_parallel_waves_and_halves_equal_the_serial_pass(monkeypatch, wave_segments):
+@pytest.mark.parametrize("chunk_segments, margin", [(1 << 18, 1.25), (50, 0.05)])
+def test_parallel_chunks_and_halves_equal_the_serial_pass(monkeypatch, chunk_segments, margin):
     # The baseline batches like the exact method: one appending pass on one
-    # thread, two halves on two, waves of chunks on more. With 50 segments of
-    # scratch per thread every chunk of a wave overflows after a ray or two
-    # and the output grows many times.
+    # thread, two halves on two, ordered chunks on more. With 50 segments a
+    # chunk is one ray, and with 5% of the bounds reserved the output grows
+    # many times.
     import numba
 
     from logsph_trace import _batching, _validate
 
-    monkeypatch.setattr(_batching, "WAVE_SEGMENTS", wave_segments)
+    monkeypatch.setattr(_batching, "ORDERED_SEGMENTS", chunk_segments)
+    monkeypatch.setattr(_batching, "RESERVE_MARGIN", margin)
     box = CartesianGrid((-1.0, -1.0, -1.0), (1.0, 2.0, 1.5), (13, 17, 11))
     rng = np.random.default_rng(7)
     origins = rng.uniform(-1.0, 1.0, (3000, 3))
@@ -61,14 +62,16 @@ def test_parallel_waves_and_halves_equal_the_serial_pass(monkeypatch, wave_segme
         numba.set_num_threads(previous)
     o, d = _validate.rays(origins, directions)
     inputs = (o, d, box.low, box.voxel_size, box._shape)
-    waves = _batching.run_waves(_kernels.box_chunks, inputs, len(o), sum(box.shape), 5)
-    # The two-thread path, on any machine (tests/test_halves.py for the exact method).
+    ordered = _batching.run_ordered(BOX_KERNELS, inputs, inputs, len(o), sum(box.shape), 5)
+    # The two-thread path, on any machine (tests/test_halves.py for the exact
+    # method); with the small margin it runs out of room and says so.
     halves = _batching.run_halves(BOX_KERNELS, inputs, inputs, len(o), sum(box.shape))
     assert serial.cells.shape[0] > 5 * len(origins)
-    for result in results + [waves, halves]:
+    for result in results + [ordered] + ([halves] if margin > 1 else []):
         for name in ("offsets", "cells", "t_enter", "t_exit"):
             np.testing.assert_array_equal(getattr(result, name), getattr(serial, name))
-            assert getattr(waves, name).base is None  # the waves own exactly their data
+            assert getattr(ordered, name).base is None  # it owns exactly its data
+    assert (halves is None) == (margin < 1)
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 1), (7, 8, 9), (32, 32, 32)])

@@ -147,15 +147,16 @@ def test_property_any_ray_matches_oracle(name, origin, direction):
     assert_matches_oracle(grid, origin, direction, result, rel=TANGENT_SLIVER, scale=scene)
 
 
-@pytest.mark.parametrize("wave_segments", [1 << 17, 600])
-def test_every_parallel_path_equals_the_serial_one(monkeypatch, wave_segments):
-    # Waves of chunks gathered into the output: with a scratch of 600 segments
-    # per thread there are hundreds of waves, and chunks run out of room both
-    # at the start (the first rays miss, so segments per ray look like ~0) and
-    # later; the output's first estimate is then far too small and grows.
+@pytest.mark.parametrize("chunk_segments, margin", [(1 << 18, 1.25), (600, 1.25), (600, 0.02)])
+def test_every_parallel_path_equals_the_serial_one(monkeypatch, chunk_segments, margin):
+    # Ordered chunks placed by the threads that traced them: with 600 segments
+    # a chunk is a single ray, so thousands of chunks pass their starts on;
+    # with a reservation of 2% of the bounds the output runs out of room many
+    # times, keeps the rows placed and grows. The first 256 rays miss the grid.
     from logsph_trace import _batching, _validate
 
-    monkeypatch.setattr(_batching, "WAVE_SEGMENTS", wave_segments)
+    monkeypatch.setattr(_batching, "ORDERED_SEGMENTS", chunk_segments)
+    monkeypatch.setattr(_batching, "RESERVE_MARGIN", margin)
     grid = GRIDS["log_full"]()
     rng = np.random.default_rng(41)
     origins, directions = random_rays(rng, grid, 6000)
@@ -163,38 +164,37 @@ def test_every_parallel_path_equals_the_serial_one(monkeypatch, wave_segments):
     directions[:256] = [0.0, 0.0, 1.0]
     serial = lt.trace_many(grid, origins, directions, parallel=False)
     o, d = _validate.rays(origins, directions)
-    args = grid.kernel_args()
     far = np.full(len(o), np.inf)
     results = [
         lt.trace_many(grid, origins, directions, parallel=True),
-        _batching.run_exact_parallel(grid, o[::-1].copy(), d[::-1].copy(), far, args, threads=3),
-        _batching.run_exact_parallel(grid, o, d, far, args, threads=5),
+        _batching.run_exact_ordered(grid, o[::-1].copy(), d[::-1].copy(), far, workers=3),
+        _batching.run_exact_ordered(grid, o, d, far, workers=5),
+        _batching.run_exact_ordered(grid, o, d, far, workers=1),
     ]
     reversed_serial = lt.trace_many(grid, origins[::-1], directions[::-1], parallel=False)
-    for result, want in zip(results, [serial, reversed_serial, serial]):
+    for result, want in zip(results, [serial, reversed_serial, serial, serial]):
         for name in ("offsets", "cells", "t_enter", "t_exit"):
             np.testing.assert_array_equal(getattr(result, name), getattr(want, name))
-            # The waves' arrays own exactly their data: no spare room kept alive
-            # (two threads take the halves instead: tests/test_halves.py).
+            # The ordered path's arrays own exactly their data: no spare room kept
+            # alive (two threads take the halves instead: tests/test_halves.py).
             assert result is results[0] or getattr(result, name).base is None
 
 
 @pytest.mark.parametrize("kind", ["centre", "y_axis", "sphere_tangent", "phi_turn", "corner"])
-def test_waves_equal_the_serial_pass_on_near_singular_rays(monkeypatch, kind):
+def test_ordered_chunks_equal_the_serial_pass_on_near_singular_rays(monkeypatch, kind):
     # Rays through or a hair (1e-15 .. 1e-3 of the scene) beside the centre,
-    # the y axis, tangents and corners, from random eyes, in waves of 3 chunks
-    # small enough (2,000 segments each) that every wave gathers its chunks.
+    # the y axis, tangents and corners, from random eyes, in ordered chunks of
+    # a few rays each on 3 workers.
     from singular import CLASSES, singular_rays
 
     from logsph_trace import _batching, _validate
 
-    monkeypatch.setattr(_batching, "WAVE_SEGMENTS", 2000)
+    monkeypatch.setattr(_batching, "ORDERED_SEGMENTS", 2000)
     grid = GRIDS["log_full"]()
     rng = np.random.default_rng(CLASSES.index(kind) + 313)
     origins, directions, _ = singular_rays(rng, grid, kind, 100)
     serial = lt.trace_many(grid, origins, directions, parallel=False)
     o, d = _validate.rays(origins, directions)
-    waves = _batching.run_exact_parallel(grid, o, d, np.full(len(o), np.inf), grid.kernel_args(),
-                                         threads=3)
+    ordered = _batching.run_exact_ordered(grid, o, d, np.full(len(o), np.inf), workers=3)
     for name in ("offsets", "cells", "t_enter", "t_exit"):
-        np.testing.assert_array_equal(getattr(waves, name), getattr(serial, name))
+        np.testing.assert_array_equal(getattr(ordered, name), getattr(serial, name))

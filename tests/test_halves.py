@@ -90,15 +90,16 @@ def test_halves_of_small_batches(n_rays):
 
 
 @pytest.mark.parametrize("margin", [0.05, 0.6])
-def test_a_half_that_runs_out_of_room_hands_the_batch_to_the_waves(monkeypatch, margin):
+def test_a_half_that_runs_out_of_room_hands_the_batch_on(monkeypatch, margin):
     # With the sampled bounds scaled far down, the front half (0.05: both)
     # runs out of room: each stops before a block or ray that might not fit,
     # run_halves says so (None), and trace_many's two-thread path traces the
-    # batch again in waves.
+    # batch again in ordered chunks (whose output, reserved with the same
+    # margin, grows).
     grid = GRIDS["log_full"]()
     origins, directions = random_rays(np.random.default_rng(12), grid, 4000)
     want = lt.trace_many(grid, origins, directions, parallel=False)
-    monkeypatch.setattr(_batching, "HALVES_MARGIN", margin)
+    monkeypatch.setattr(_batching, "RESERVE_MARGIN", margin)
     assert exact_halves(grid, origins, directions) is None
     monkeypatch.setattr(numba, "get_num_threads", lambda: 2)
     assert_same(lt.trace_many(grid, origins, directions, parallel=True), want)
@@ -110,12 +111,13 @@ def test_a_reservation_that_does_not_fit_in_memory_is_not_made(monkeypatch):
     want = lt.trace_many(grid, origins, directions, parallel=False)
     # Only a large reservation is checked (reading the figure costs ~0.1 ms),
     # and only a large batch is split: both thresholds down to this one.
-    monkeypatch.setattr(_batching, "HALVES_CHECKED_BYTES", 0)
+    monkeypatch.setattr(_batching, "CHECKED_BYTES", 0)
     monkeypatch.setattr(_batching, "PARALLEL_MIN_RAYS", 512)
     monkeypatch.setattr(_validate, "available_memory", lambda: 10_000)
     assert exact_halves(grid, origins, directions) is None
     monkeypatch.setattr(numba, "get_num_threads", lambda: 2)
-    # The waves then check their own, smaller, estimate against the same figure.
+    # The ordered chunks then reserve what there is, and their output, grown
+    # as it must, is checked against the same figure.
     with pytest.raises(MemoryError, match="origins: tracing 2,000 rays"):
         lt.trace_many(grid, origins, directions, parallel=True)
     monkeypatch.setattr(_validate, "available_memory", lambda: None)

@@ -37,13 +37,19 @@ SCRIPT = textwrap.dedent(
     cone = lt.trace_cone(grid, [0.4, 1.5, 1.2], [-0.1, -0.4, 1.0], 0.1, n_rays=20)
     cart = CartesianGrid((-10.0, -10.0, -10.0), (10.0, 10.0, 10.0), (7, 8, 9))
     boxes = cart.trace_many(origins, directions)
+    # The path of three threads or more, in chunks of a ray or two on 3 workers.
+    from logsph_trace import _batching, _validate
+    _batching.ORDERED_SEGMENTS = 200
+    o, d = _validate.rays(origins, directions)
+    ordered = _batching.run_exact_ordered(grid, o, d, np.full(len(o), np.inf), 3)
     np.savez(sys.argv[1], offsets=traces.offsets, cells=traces.cells, t_enter=traces.t_enter,
              t_exit=traces.t_exit, box_offsets=boxes.offsets, box_cells=boxes.cells,
              points=grid.cell_of(origins), bisect_cells=bisect.cells,
              bisect_offsets=bisect.offsets, thibaudeau_cells=thibaudeau.cells,
              thibaudeau_offsets=thibaudeau.offsets, log_odds=occupancy.log_odds,
              radial_log_odds=radial.log_odds,
-             cone_cells=cone.cells, cone_weights=cone.weights)
+             cone_cells=cone.cells, cone_weights=cone.weights, ordered_offsets=ordered.offsets,
+             ordered_cells=ordered.cells, ordered_t_exit=ordered.t_exit)
     """
 )
 
@@ -63,6 +69,10 @@ def test_kernels_run_without_jit(tmp_path):
         np.testing.assert_array_equal(plain[name], jitted[name], err_msg=name)
     np.testing.assert_allclose(plain["t_enter"], jitted["t_enter"], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(plain["t_exit"], jitted["t_exit"], rtol=1e-12, atol=1e-12)
+    for run in (plain, jitted):
+        np.testing.assert_array_equal(run["ordered_offsets"], run["offsets"])
+        np.testing.assert_array_equal(run["ordered_cells"], run["cells"])
+        np.testing.assert_array_equal(run["ordered_t_exit"], run["t_exit"])
     np.testing.assert_array_equal(plain["log_odds"], jitted["log_odds"])
     np.testing.assert_array_equal(plain["radial_log_odds"], jitted["radial_log_odds"])
     assert np.any(jitted["radial_log_odds"] > 0)

@@ -2,7 +2,6 @@
 
 import os
 
-import numba
 import numpy as np
 import pytest
 
@@ -245,33 +244,32 @@ def test_a_gaze_sized_half_angle_does_not_warn(recwarn):
 
 # ---- memory ---------------------------------------------------------------
 
-@pytest.mark.parametrize("threads", [3, 5])
-def test_a_batch_in_waves_peaks_close_to_its_output(threads):
-    # Every allocation counts here (tracemalloc), touched or not: the waves'
-    # output is sized by estimate and shrunk to fit. The two-thread halves
-    # reserve more address space than that and touch only their output:
-    # tests/test_halves.py measures their resident memory.
-    import tracemalloc
-
+@pytest.mark.parametrize("workers", [3, 5])
+def test_a_batch_in_ordered_chunks_touches_only_its_output(workers):
+    # The output is reserved by sampled upper bounds with a margin (here
+    # 1.9x what it holds), but only the pages the chunks are written to
+    # become resident: peak resident growth within 1.1x the output, plus the
+    # pages at its end (huge pages: 2 MiB per array) and the chunks' scratch
+    # (kept between calls: this call reuses the first one's). The arrays are
+    # then shrunk in place to the exact size.
+    from bench.parallel_memory import reset_peak, status
     from logsph_trace import _batching, _validate
 
-    grid = lt.Grid(0.1, 10.0, 64, 64, 64)
+    if not reset_peak():
+        pytest.skip("needs Linux's /proc/self/clear_refs")
+    grid = lt.Grid(0.1, 10.0, 128, 128, 128)
     rng = np.random.default_rng(3)
-    o, d = _validate.rays(rng.uniform(-8, 8, (20000, 3)), rng.normal(size=(20000, 3)))
+    o, d = _validate.rays(rng.uniform(-8, 8, (100_000, 3)), rng.normal(size=(100_000, 3)))
     far = np.full(len(o), np.inf)
-    run = lambda n: _batching.run_exact_parallel(grid, o[:n], d[:n], far[:n],  # noqa: E731
-                                                 grid.kernel_args(), threads)
-    run(1000)  # compile, scratch
-    tracemalloc.start()
-    try:
-        traces = run(len(o))
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    run = lambda n: _batching.run_exact_ordered(grid, o[:n], d[:n], far[:n], workers)  # noqa: E731
+    run(len(o))  # compile; scratch
+    before = status("VmRSS")
+    assert reset_peak()
+    traces = run(len(o))
+    grown = status("VmHWM") - before
     arrays = (traces.offsets, traces.cells, traces.t_enter, traces.t_exit)
     output = sum(a.nbytes for a in arrays)
-    wave = threads * (_batching.WAVE_SEGMENTS + 1000) * _batching.SEGMENT_BYTES
-    assert peak <= 1.1 * output + wave
+    assert grown <= 1.1 * output + 8 * 2**20, (grown / 2**20, output / 2**20)
     assert all(a.base is None for a in arrays)  # no spare capacity kept alive by views
 
 
@@ -349,15 +347,29 @@ def test_python_threads_may_call_in_parallel_on_the_workqueue_layer():
     assert result.stdout.strip() == "ok workqueue"
 
 
-def test_a_large_wave_scratch_is_released(monkeypatch):
-    from logsph_trace import _batching
+def test_the_ordered_chunks_scratch_is_kept_between_calls(monkeypatch):
+    # The chunks' scratch is reused by the next call in this Python thread,
+    # whatever its size (only the pages the chunks write are ever touched),
+    # and a call from another Python thread gets its own.
+    import threading
 
-    if numba.get_num_threads() < 2:
-        pytest.skip("the wave path runs on two threads or more")
+    from logsph_trace import _batching, _validate
+
     monkeypatch.setattr(_batching, "KEEP_SCRATCH_SEGMENTS", 100)
     monkeypatch.setattr(_batching, "_scratch", type(_batching._scratch)())
-    origins, directions = _points(2000), _points(2000, seed=1)
-    traced = lt.trace_many(SMALL, origins, directions, parallel=True)
-    assert getattr(_batching._scratch, "waves", None) is None
-    np.testing.assert_array_equal(
-        traced.cells, lt.trace_many(SMALL, origins, directions, parallel=False).cells)
+    o, d = _validate.rays(_points(3000), _points(3000, seed=1))
+    far = np.full(len(o), np.inf)
+    first = _batching.run_exact_ordered(SMALL, o, d, far, 3)
+    held = _batching._scratch.ordered
+    second = _batching.run_exact_ordered(SMALL, o, d, far, 3)
+    assert _batching._scratch.ordered is held
+    other = []
+    thread = threading.Thread(target=lambda: other.append(
+        (_batching.run_exact_ordered(SMALL, o, d, far, 3), _batching._scratch.ordered)))
+    thread.start()
+    thread.join()
+    assert other[0][1] is not held
+    want = _batching.run_exact(SMALL, o, d, far, False)
+    for got in (first, second, other[0][0]):
+        np.testing.assert_array_equal(got.cells, want.cells)
+        np.testing.assert_array_equal(got.t_exit, want.t_exit)

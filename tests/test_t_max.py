@@ -45,7 +45,7 @@ def test_t_max_on_the_parallel_paths():
     o, d = _validate.rays(origins, directions)
     for result in (
         lt.trace_many(grid, origins, directions, t_max=t_max),
-        _batching.run_exact_parallel(grid, o, d, t_max, grid.kernel_args(), threads=3),
+        _batching.run_exact_ordered(grid, o, d, t_max, workers=3),
     ):
         np.testing.assert_array_equal(result.offsets, serial.offsets)
         np.testing.assert_array_equal(result.t_exit, serial.t_exit)

@@ -10,7 +10,14 @@ out atomically (``xchg``, a locked instruction, so worth a relaxed load
 first), so that of all the rays ending in one cell exactly one takes its
 flag, and the cell is updated once, whichever thread that is.
 
-With ``NUMBA_DISABLE_JIT=1`` all three are plain Python.
+The batch path that places chunks of rays in order (``kernels.ordered``)
+hands out chunks with ``fetch_add`` and passes their positions from thread
+to thread with ``store_ordered`` and ``load_ordered``: sequentially
+consistent accesses (LLVM ``seq_cst``), so that of two threads that each
+store one value and then load the other's, at least one sees the other's
+store.
+
+With ``NUMBA_DISABLE_JIT=1`` all six are plain Python.
 """
 
 import numba
@@ -33,6 +40,15 @@ if numba.config.DISABLE_JIT:
         old = array[index]
         array[index] = value
         return old
+
+    def fetch_add(array, index, value):
+        """Python stand-in: add ``value`` to ``array[index]``; return what it held."""
+        old = array[index]
+        array[index] = old + value
+        return old
+
+    store_ordered = store_relaxed
+    load_ordered = load_relaxed
 
 else:
 
@@ -82,5 +98,49 @@ else:
             pointer = _element_pointer(context, builder, array_type, args[0], args[1])
             item = context.cast(builder, args[2], value_type, array_type.dtype)
             return builder.atomic_rmw("xchg", pointer, item, "monotonic")
+
+        return sig, codegen
+
+    @intrinsic
+    def fetch_add(typingctx, array, index, value):
+        """Add ``value`` to ``array[index]`` atomically and return what it held
+        (``lock xadd``; 1D integer array; no bounds check)."""
+        sig = array.dtype(array, index, value)
+
+        def codegen(context, builder, signature, args):
+            array_type, _, value_type = signature.args
+            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
+            item = context.cast(builder, args[2], value_type, array_type.dtype)
+            return builder.atomic_rmw("add", pointer, item, "seq_cst")
+
+        return sig, codegen
+
+    @intrinsic
+    def store_ordered(typingctx, array, index, value):
+        """``array[index] = value`` as one sequentially consistent atomic store
+        (1D integer array; no bounds check)."""
+        sig = types.void(array, index, value)
+
+        def codegen(context, builder, signature, args):
+            array_type, _, value_type = signature.args
+            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
+            item = context.cast(builder, args[2], value_type, array_type.dtype)
+            size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
+            builder.store_atomic(item, pointer, "seq_cst", size)
+            return context.get_dummy_value()
+
+        return sig, codegen
+
+    @intrinsic
+    def load_ordered(typingctx, array, index):
+        """``array[index]`` as one sequentially consistent atomic load (1D integer
+        array; no bounds check)."""
+        sig = array.dtype(array, index)
+
+        def codegen(context, builder, signature, args):
+            array_type, _ = signature.args
+            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
+            size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
+            return builder.load_atomic(pointer, "seq_cst", size)
 
         return sig, codegen

@@ -2,7 +2,7 @@
 
 Written in the same style as the exact log-spherical kernel (scalar state,
 the same segment output, the same batching: one appending pass on one
-thread, waves of chunks on many) so timings compare like for like.
+thread, two halves on two, chunks placed in order on more) so timings compare like for like.
 """
 
 import math
@@ -12,6 +12,7 @@ from numba import prange
 
 from .._jit import jit
 from .exact import BACK_BLOCK_SEGMENTS, place_block
+from .ordered import place, post, take
 
 
 @jit
@@ -189,22 +190,39 @@ def box_halves(split, anchor, limit, origins, directions, low, size, shape, cell
 
 
 @jit(parallel=True)
-def box_chunks(starts, regions, origins, directions, low, size, shape, cells, t_enter, t_exit,
-               offsets, limited, head_cells, head_enter, head_exit, head_start):
-    """Chunk c traces rays starts[c]..starts[c+1]-1 into its region (``exact.trace_chunks``'s
-    contract, head included); ``limited`` must be true: the box has no bound pass."""
-    n_chunks = starts.shape[0] - 1
-    ends = np.empty(n_chunks, dtype=np.int64)
+def box_ordered(first_row, chunk_rays, workers, origins, directions, low, size, shape,
+                loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets, used):
+    """Chunks taken in order and placed by the threads that traced them
+    (``exact.trace_ordered``'s contract)."""
+    n_rays = origins.shape[0]
+    n_chunks = (n_rays - first_row + chunk_rays - 1) // chunk_rays
+    room = chunk_rays * (shape[0] + shape[1] + shape[2])
+    counts = np.full(n_chunks, -1, dtype=np.int64)
+    starts = np.full(n_chunks + 1, -1, dtype=np.int64)
+    starts[0] = used
     reached = np.empty(n_chunks, dtype=np.int64)
-    for chunk in prange(n_chunks):
-        if chunk == 0 and head_start >= 0:
-            ends[0], reached[0] = box_span(
-                starts[0], starts[1], origins, directions, low, size, shape, head_cells,
-                head_enter, head_exit, offsets, head_start, head_enter.shape[0],
-            )
-        else:
-            ends[chunk], reached[chunk] = box_span(
-                starts[chunk], starts[chunk + 1], origins, directions, low, size, shape, cells,
-                t_enter, t_exit, offsets, regions[chunk], regions[chunk + 1],
-            )
-    return ends, reached
+    counter = np.zeros(1, dtype=np.int64)
+    for worker in prange(workers):
+        waiting = -1
+        side = 0
+        chunk = take(counter, n_chunks)
+        while chunk >= 0 or waiting >= 0:
+            if chunk >= 0:
+                first = first_row + chunk * chunk_rays
+                source = (2 * worker + side) * room
+                end, _ = box_span(first, min(n_rays, first + chunk_rays), origins, directions,
+                                  low, size, shape, loose_cells, loose_enter, loose_exit, offsets,
+                                  source, source + room)
+                post(chunk, end - source, counts, starts)
+            if waiting >= 0:
+                first = first_row + waiting * chunk_rays
+                source = (2 * worker + 1 - side) * room
+                reached[waiting] = place(
+                    waiting, starts, source, counts[waiting], first,
+                    min(n_rays, first + chunk_rays), loose_cells, loose_enter, loose_exit, cells,
+                    t_enter, t_exit, offsets,
+                )
+            waiting = chunk
+            side = 1 - side
+            chunk = take(counter, n_chunks) if chunk >= 0 else -1
+    return reached

@@ -44,6 +44,7 @@ from .locate import (
     rho_zone,
     theta_zone,
 )
+from .ordered import place, post, take
 from .stream import stream_segments
 
 
@@ -641,50 +642,6 @@ def bound_counts(origins, directions, grid, bounds):
                                     lookups, no_cells, no_t, no_t, 0, BOUND)
 
 
-@jit(parallel=True)
-def touch_pages(cells, t_enter, t_exit):
-    """Write one value per 4 KiB page of fresh output on all threads.
-
-    The kernel gives a page its memory on first write. Doing that for the
-    whole output at once, spread over the threads, is faster than having
-    each wave's copy fault its pages in bursts that contend for the kernel's
-    locks.
-    """
-    n = t_enter.shape[0]
-    step = 512  # float64 values per 4 KiB page; cells rows are 12 bytes, so 512 rows span 1.5
-    for block in prange((n + step - 1) // step):
-        row = block * step
-        cells[row, 0] = 0
-        cells[min(row + step // 2, n - 1), 0] = 0
-        t_enter[row] = 0.0
-        t_exit[row] = 0.0
-
-
-@jit(parallel=True)
-def gather_chunks(starts, regions, ends, offsets, loose_cells, loose_enter, loose_exit, first,
-                  cells, t_enter, t_exit):
-    """Copy each chunk's segments from its region to their final place, from ``first`` on.
-
-    Chunk c's segments ``regions[c]:ends[c]`` follow the chunks before it;
-    its rays' ``offsets`` (positions in the regions) become final positions.
-    Each chunk is one thread's, so the copy, and the first touch of the
-    output's pages, run in parallel.
-    """
-    n_chunks = starts.shape[0] - 1
-    targets = np.empty(n_chunks, dtype=np.int64)
-    target = first
-    for chunk in range(n_chunks):
-        targets[chunk] = target
-        target += ends[chunk] - regions[chunk]
-    for chunk in prange(n_chunks):
-        source = regions[chunk]
-        shift = targets[chunk] - source
-        stream_segments(loose_cells, loose_enter, loose_exit, source, ends[chunk] - source,
-                        cells, t_enter, t_exit, targets[chunk])
-        for row in range(starts[chunk] + 1, starts[chunk + 1] + 1):
-            offsets[row] += shift
-
-
 @jit
 def max_segments(n_rho, n_theta, n_phi):
     """Most segments one ray can have: one per crossing (see ``scratch_size``)."""
@@ -812,37 +769,76 @@ def trace_halves(split, anchor, limit, origins, directions, t_max, grid, cells, 
 
 @jit(parallel=True)
 def trace_chunks(starts, regions, origins, directions, t_max, grid, cells, t_enter, t_exit,
-                 offsets, limited, head_cells, head_enter, head_exit, head_start):
+                 offsets):
     """Chunk c traces rays starts[c]..starts[c+1]-1 into its region, from regions[c] on.
 
-    ``limited``: a chunk stops before a ray that might not fit below
-    ``regions[c + 1]``. Otherwise the regions must be sized by
-    ``bound_counts``: no ray writes past its bound, so none is checked.
-    With ``head_start >= 0`` chunk 0 writes to the head arrays instead, from
-    ``head_start`` on, up to their end: the output itself, where the first
-    chunk's place is known before it is traced.
-    Returns per chunk the end of its segments and the first row it did not
-    trace (``starts[c + 1]`` when it traced them all); ``offsets[row + 1]``
-    gets the end of ray ``row``'s segments (positions in the regions).
+    The regions must be sized by ``bound_counts``: no ray writes past its
+    bound, so none is checked. Returns per chunk the end of its segments;
+    ``offsets[row + 1]`` gets the end of ray ``row``'s segments (positions in
+    the regions).
     """
     n_chunks = starts.shape[0] - 1
     size = grid_scratch_size(grid)
     ends = np.empty(n_chunks, dtype=np.int64)
-    reached = np.empty(n_chunks, dtype=np.int64)
     no_limit = np.iinfo(np.int64).max
     for chunk in prange(n_chunks):
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
-        if chunk == 0 and head_start >= 0:
-            ends[0], reached[0] = trace_span(
-                starts[0], starts[1], origins, directions, t_max, grid, times, zones, lookups,
-                head_cells, head_enter, head_exit, offsets, head_start, head_enter.shape[0],
-            )
-        else:
-            ends[chunk], reached[chunk] = trace_span(
-                starts[chunk], starts[chunk + 1], origins, directions, t_max, grid, times, zones,
-                lookups, cells, t_enter, t_exit, offsets, regions[chunk],
-                regions[chunk + 1] if limited else no_limit,
-            )
-    return ends, reached
+        ends[chunk], _ = trace_span(
+            starts[chunk], starts[chunk + 1], origins, directions, t_max, grid, times, zones,
+            lookups, cells, t_enter, t_exit, offsets, regions[chunk], no_limit,
+        )
+    return ends
+
+
+@jit(parallel=True)
+def trace_ordered(first_row, chunk_rays, workers, origins, directions, t_max, grid, loose_cells,
+                  loose_enter, loose_exit, cells, t_enter, t_exit, offsets, used):
+    """Rows ``first_row`` on, in chunks of ``chunk_rays``, taken in order by ``workers``
+    threads and placed in the output from segment ``used`` on (``kernels.ordered``).
+
+    Worker w traces into rows ``(2 w + side) * room`` of the scratch arrays,
+    ``room = chunk_rays * max_segments`` (two buffers per worker), so a chunk
+    always fits. ``offsets[first_row]`` must be ``used``; every placed ray
+    gets ``offsets[row + 1]``. Returns per chunk the first row not placed (the
+    chunk's end when it was): a chunk that would end past the output and the
+    chunks after it are not placed.
+    """
+    n_rays = origins.shape[0]
+    n_chunks = (n_rays - first_row + chunk_rays - 1) // chunk_rays
+    size = grid_scratch_size(grid)
+    room = chunk_rays * max_segments(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
+                                     grid.phi_edges.shape[0] - 1)
+    counts = np.full(n_chunks, -1, dtype=np.int64)
+    starts = np.full(n_chunks + 1, -1, dtype=np.int64)
+    starts[0] = used
+    reached = np.empty(n_chunks, dtype=np.int64)
+    counter = np.zeros(1, dtype=np.int64)
+    for worker in prange(workers):
+        times = np.empty((3, size), dtype=np.float64)
+        zones = np.empty((3, size), dtype=np.int64)
+        lookups = np.empty(8, dtype=np.int64)
+        waiting = -1  # the chunk in the other buffer, traced and not yet placed
+        side = 0
+        chunk = take(counter, n_chunks)
+        while chunk >= 0 or waiting >= 0:
+            if chunk >= 0:
+                first = first_row + chunk * chunk_rays
+                source = (2 * worker + side) * room
+                end, _ = trace_span(first, min(n_rays, first + chunk_rays), origins, directions,
+                                    t_max, grid, times, zones, lookups, loose_cells, loose_enter,
+                                    loose_exit, offsets, source, source + room)
+                post(chunk, end - source, counts, starts)
+            if waiting >= 0:
+                first = first_row + waiting * chunk_rays
+                source = (2 * worker + 1 - side) * room
+                reached[waiting] = place(
+                    waiting, starts, source, counts[waiting], first,
+                    min(n_rays, first + chunk_rays), loose_cells, loose_enter, loose_exit, cells,
+                    t_enter, t_exit, offsets,
+                )
+            waiting = chunk
+            side = 1 - side
+            chunk = take(counter, n_chunks) if chunk >= 0 else -1
+    return reached

@@ -2,8 +2,8 @@
 
 The batch paths that cannot write a segment straight to its final place
 trace into a small scratch and copy it there afterwards: the front half of
-``exact.trace_halves`` (its blocks) and the waves' gather
-(``exact.gather_chunks``). An ordinary store to memory that is not in the
+``exact.trace_halves`` (its blocks) and the ordered chunks
+(``ordered.place``). An ordinary store to memory that is not in the
 cache first reads the line it writes into (a read for ownership), so such a
 copy moves each target byte between memory and the cache twice. A
 non-temporal store writes the line without reading it, and leaves the cache

@@ -1,0 +1,102 @@
+"""Chunks of rays taken in order and placed by the threads that traced them.
+
+The batch path on three threads or more (``exact.trace_ordered``,
+``cartesian.box_ordered``; ``_batching.run_ordered``). A trace's length is
+unknown before it is traced, so where a chunk of rays belongs in the output
+is known only once every chunk before it has been traced. Here each thread
+(a *worker*) takes the next chunk from a shared counter (``take``), traces
+it into one of its two scratch buffers, and posts the chunk's segment count
+(``post``). Posting also settles the chain of positions: chunk c starts
+where chunk c - 1 ends, so whichever thread posts the last count a start
+depends on publishes that start, and the ones after it that are already
+counted. The worker then copies the chunk it traced before, waiting in
+its other buffer, to its place (``start_of``, ``place``); by then its
+start is almost always known, so a worker waits only for a chunk taken
+before its own that is still being traced, and a slow chunk stalls no
+one for longer than one chunk of tracing.
+
+Compared with tracing a round of chunks into scratch and then gathering
+them (the path this replaced), nothing waits for the slowest thread of a
+round, no phase runs on one thread, and the output is written once, by
+non-temporal stores from a scratch small enough to stay in the cache
+(``stream.stream_segments``), each page faulted in by the thread that
+writes it.
+
+A chunk is sized to fit its buffer whatever its rays do (``max_segments``
+per ray), so tracing never stops inside a chunk. The output is reserved
+in advance from sampled bounds; a chunk that would end past it is not
+placed, and neither is any chunk after it (their starts are larger):
+``reached`` says which rows were placed, and the caller grows the output
+and traces the rest again.
+
+Progress: a worker waits only for the start of a chunk it took, which
+depends on the counts of chunks taken earlier, each by a worker that was
+running when it took it and posts that count before it waits for
+anything. Counts and starts are sequentially consistent atomics, so of a
+thread posting a count and one publishing the start before it, at least
+one sees the other's store and carries the chain on.
+"""
+
+from .._jit import jit
+from .atomic import fetch_add, load_ordered, store_ordered
+from .stream import stream_segments
+
+# A start past the output's room (saturating): the chunks from here on are not placed.
+UNPLACED = 1 << 60
+
+
+@jit(inline="always")
+def take(counter, n_chunks):
+    """The next chunk to trace, or -1 when every chunk has been taken."""
+    chunk = fetch_add(counter, 0, 1)
+    return chunk if chunk < n_chunks else -1
+
+
+@jit(inline="always")
+def post(chunk, count, counts, starts):
+    """Post ``chunk``'s segment ``count`` and publish every start it settles.
+
+    ``starts[c]`` is where chunk c begins in the output (-1 until known),
+    ``counts[c]`` its segments (-1 until traced).
+    """
+    store_ordered(counts, chunk, count)
+    n_chunks = counts.shape[0]
+    while chunk < n_chunks:
+        start = load_ordered(starts, chunk)
+        if start < 0:
+            return  # an earlier chunk is still being traced: its poster carries on
+        count = load_ordered(counts, chunk)
+        if count < 0:
+            return  # this one is: its poster carries on
+        store_ordered(starts, chunk + 1, min(start + count, UNPLACED))
+        chunk += 1
+
+
+@jit(inline="always")
+def start_of(chunk, starts):
+    """Where ``chunk`` begins, once every chunk before it is counted (waits)."""
+    start = load_ordered(starts, chunk)
+    while start < 0:
+        start = load_ordered(starts, chunk)
+    return start
+
+
+@jit(inline="always")
+def place(chunk, starts, source, count, first, last, loose_cells, loose_enter, loose_exit,
+          cells, t_enter, t_exit, offsets):
+    """Copy ``chunk``'s ``count`` segments from row ``source`` of the scratch to its
+    place in the output; return the first of its rows ``first..last-1`` not placed.
+
+    The chunk's rays wrote their ends as scratch positions into
+    ``offsets[first + 1:last + 1]``; they become output positions. A chunk
+    that would end past the output is not placed (returns ``first``).
+    """
+    target = start_of(chunk, starts)
+    if target + count > cells.shape[0]:
+        return first
+    stream_segments(loose_cells, loose_enter, loose_exit, source, count, cells, t_enter, t_exit,
+                    target)
+    shift = target - source
+    for row in range(first + 1, last + 1):
+        offsets[row] += shift
+    return last
