@@ -57,90 +57,73 @@ else:
                                         context.make_array(array_type)(context, builder, array),
                                         [index], wraparound=False)
 
-    @intrinsic
-    def store_relaxed(typingctx, array, index, value):
-        """``array[index] = value`` as one atomic store, unordered (1D integer
-        array; no bounds check: the caller checks the index)."""
-        sig = types.void(array, index, value)
+    def _store(ordering):
+        """Code for ``array[index] = value`` as one atomic store with ``ordering``."""
 
         def codegen(context, builder, signature, args):
             array_type, _, value_type = signature.args
             pointer = _element_pointer(context, builder, array_type, args[0], args[1])
             item = context.cast(builder, args[2], value_type, array_type.dtype)
             size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
-            builder.store_atomic(item, pointer, "monotonic", size)
+            builder.store_atomic(item, pointer, ordering, size)
             return context.get_dummy_value()
 
-        return sig, codegen
+        return codegen
+
+    def _load(ordering):
+        """Code for ``array[index]`` as one atomic load with ``ordering``."""
+
+        def codegen(context, builder, signature, args):
+            array_type, _ = signature.args
+            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
+            size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
+            return builder.load_atomic(pointer, ordering, size)
+
+        return codegen
+
+    def _read_modify_write(operation, ordering):
+        """Code for an atomic ``operation`` on ``array[index]`` returning the old value."""
+
+        def codegen(context, builder, signature, args):
+            array_type, _, value_type = signature.args
+            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
+            item = context.cast(builder, args[2], value_type, array_type.dtype)
+            return builder.atomic_rmw(operation, pointer, item, ordering)
+
+        return codegen
+
+    @intrinsic
+    def store_relaxed(typingctx, array, index, value):
+        """``array[index] = value`` as one atomic store, unordered (1D integer
+        array; no bounds check: the caller checks the index)."""
+        return types.void(array, index, value), _store("monotonic")
 
     @intrinsic
     def load_relaxed(typingctx, array, index):
         """``array[index]`` as one atomic load, unordered (1D integer array; no
         bounds check)."""
-        sig = array.dtype(array, index)
-
-        def codegen(context, builder, signature, args):
-            array_type, _ = signature.args
-            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
-            size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
-            return builder.load_atomic(pointer, "monotonic", size)
-
-        return sig, codegen
+        return array.dtype(array, index), _load("monotonic")
 
     @intrinsic
     def exchange(typingctx, array, index, value):
         """Set ``array[index]`` to ``value`` atomically and return what it held
         (1D integer array; no bounds check)."""
-        sig = array.dtype(array, index, value)
-
-        def codegen(context, builder, signature, args):
-            array_type, _, value_type = signature.args
-            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
-            item = context.cast(builder, args[2], value_type, array_type.dtype)
-            return builder.atomic_rmw("xchg", pointer, item, "monotonic")
-
-        return sig, codegen
+        return array.dtype(array, index, value), _read_modify_write("xchg", "monotonic")
 
     @intrinsic
     def fetch_add(typingctx, array, index, value):
         """Add ``value`` to ``array[index]`` atomically and return what it held
         (``lock xadd``; 1D integer array; no bounds check)."""
-        sig = array.dtype(array, index, value)
-
-        def codegen(context, builder, signature, args):
-            array_type, _, value_type = signature.args
-            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
-            item = context.cast(builder, args[2], value_type, array_type.dtype)
-            return builder.atomic_rmw("add", pointer, item, "seq_cst")
-
-        return sig, codegen
+        return array.dtype(array, index, value), _read_modify_write("add", "seq_cst")
 
     @intrinsic
     def store_ordered(typingctx, array, index, value):
         """``array[index] = value`` as one sequentially consistent atomic store
         (1D integer array; no bounds check)."""
-        sig = types.void(array, index, value)
-
-        def codegen(context, builder, signature, args):
-            array_type, _, value_type = signature.args
-            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
-            item = context.cast(builder, args[2], value_type, array_type.dtype)
-            size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
-            builder.store_atomic(item, pointer, "seq_cst", size)
-            return context.get_dummy_value()
-
-        return sig, codegen
+        return types.void(array, index, value), _store("seq_cst")
 
     @intrinsic
     def load_ordered(typingctx, array, index):
         """``array[index]`` as one sequentially consistent atomic load (1D integer
         array; no bounds check)."""
-        sig = array.dtype(array, index)
-
-        def codegen(context, builder, signature, args):
-            array_type, _ = signature.args
-            pointer = _element_pointer(context, builder, array_type, args[0], args[1])
-            size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
-            return builder.load_atomic(pointer, "seq_cst", size)
-
-        return sig, codegen
+        return array.dtype(array, index), _load("seq_cst")

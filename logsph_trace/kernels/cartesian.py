@@ -12,7 +12,7 @@ from numba import prange
 
 from .._jit import jit
 from .exact import BACK_BLOCK_SEGMENTS, place_block
-from .ordered import place, post, take
+from .ordered import advance, buffer_of, chain, post, rows_of, take
 
 
 @jit
@@ -195,34 +195,22 @@ def box_ordered(first_row, chunk_rays, workers, origins, directions, low, size, 
     """Chunks taken in order and placed by the threads that traced them
     (``exact.trace_ordered``'s contract)."""
     n_rays = origins.shape[0]
-    n_chunks = (n_rays - first_row + chunk_rays - 1) // chunk_rays
     room = chunk_rays * (shape[0] + shape[1] + shape[2])
-    counts = np.full(n_chunks, -1, dtype=np.int64)
-    starts = np.full(n_chunks + 1, -1, dtype=np.int64)
-    starts[0] = used
-    reached = np.empty(n_chunks, dtype=np.int64)
-    counter = np.zeros(1, dtype=np.int64)
+    n_chunks, counts, starts, reached, counter = chain(n_rays, first_row, chunk_rays, used)
     for worker in prange(workers):
         waiting = -1
         side = 0
         chunk = take(counter, n_chunks)
         while chunk >= 0 or waiting >= 0:
             if chunk >= 0:
-                first = first_row + chunk * chunk_rays
-                source = (2 * worker + side) * room
-                end, _ = box_span(first, min(n_rays, first + chunk_rays), origins, directions,
-                                  low, size, shape, loose_cells, loose_enter, loose_exit, offsets,
-                                  source, source + room)
+                first, last = rows_of(chunk, first_row, chunk_rays, n_rays)
+                source = buffer_of(worker, side, room)
+                end, _ = box_span(first, last, origins, directions, low, size, shape, loose_cells,
+                                  loose_enter, loose_exit, offsets, source, source + room)
                 post(chunk, end - source, counts, starts)
-            if waiting >= 0:
-                first = first_row + waiting * chunk_rays
-                source = (2 * worker + 1 - side) * room
-                reached[waiting] = place(
-                    waiting, starts, source, counts[waiting], first,
-                    min(n_rays, first + chunk_rays), loose_cells, loose_enter, loose_exit, cells,
-                    t_enter, t_exit, offsets,
-                )
-            waiting = chunk
-            side = 1 - side
-            chunk = take(counter, n_chunks) if chunk >= 0 else -1
+            waiting, side, chunk = advance(
+                chunk, waiting, worker, side, room, first_row, chunk_rays, counter, counts,
+                starts, reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit,
+                offsets,
+            )
     return reached

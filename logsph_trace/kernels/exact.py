@@ -44,7 +44,7 @@ from .locate import (
     rho_zone,
     theta_zone,
 )
-from .ordered import place, post, take
+from .ordered import advance, buffer_of, chain, post, rows_of, take
 from .stream import stream_segments
 
 
@@ -806,15 +806,10 @@ def trace_ordered(first_row, chunk_rays, workers, origins, directions, t_max, gr
     chunks after it are not placed.
     """
     n_rays = origins.shape[0]
-    n_chunks = (n_rays - first_row + chunk_rays - 1) // chunk_rays
     size = grid_scratch_size(grid)
     room = chunk_rays * max_segments(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
                                      grid.phi_edges.shape[0] - 1)
-    counts = np.full(n_chunks, -1, dtype=np.int64)
-    starts = np.full(n_chunks + 1, -1, dtype=np.int64)
-    starts[0] = used
-    reached = np.empty(n_chunks, dtype=np.int64)
-    counter = np.zeros(1, dtype=np.int64)
+    n_chunks, counts, starts, reached, counter = chain(n_rays, first_row, chunk_rays, used)
     for worker in prange(workers):
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
@@ -824,21 +819,15 @@ def trace_ordered(first_row, chunk_rays, workers, origins, directions, t_max, gr
         chunk = take(counter, n_chunks)
         while chunk >= 0 or waiting >= 0:
             if chunk >= 0:
-                first = first_row + chunk * chunk_rays
-                source = (2 * worker + side) * room
-                end, _ = trace_span(first, min(n_rays, first + chunk_rays), origins, directions,
-                                    t_max, grid, times, zones, lookups, loose_cells, loose_enter,
-                                    loose_exit, offsets, source, source + room)
+                first, last = rows_of(chunk, first_row, chunk_rays, n_rays)
+                source = buffer_of(worker, side, room)
+                end, _ = trace_span(first, last, origins, directions, t_max, grid, times, zones,
+                                    lookups, loose_cells, loose_enter, loose_exit, offsets,
+                                    source, source + room)
                 post(chunk, end - source, counts, starts)
-            if waiting >= 0:
-                first = first_row + waiting * chunk_rays
-                source = (2 * worker + 1 - side) * room
-                reached[waiting] = place(
-                    waiting, starts, source, counts[waiting], first,
-                    min(n_rays, first + chunk_rays), loose_cells, loose_enter, loose_exit, cells,
-                    t_enter, t_exit, offsets,
-                )
-            waiting = chunk
-            side = 1 - side
-            chunk = take(counter, n_chunks) if chunk >= 0 else -1
+            waiting, side, chunk = advance(
+                chunk, waiting, worker, side, room, first_row, chunk_rays, counter, counts,
+                starts, reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit,
+                offsets,
+            )
     return reached

@@ -37,6 +37,8 @@ thread posting a count and one publishing the start before it, at least
 one sees the other's store and carries the chain on.
 """
 
+import numpy as np
+
 from .._jit import jit
 from .atomic import fetch_add, load_ordered, store_ordered
 from .stream import stream_segments
@@ -82,21 +84,70 @@ def start_of(chunk, starts):
 
 
 @jit(inline="always")
-def place(chunk, starts, source, count, first, last, loose_cells, loose_enter, loose_exit,
-          cells, t_enter, t_exit, offsets):
-    """Copy ``chunk``'s ``count`` segments from row ``source`` of the scratch to its
-    place in the output; return the first of its rows ``first..last-1`` not placed.
+def chain(n_rays, first_row, chunk_rays, used):
+    """A call's shared state: (n_chunks, counts, starts, reached, counter).
+
+    ``counts`` and ``starts`` as in ``post`` (chunk 0 starts at ``used``);
+    ``reached[c]``: the first of chunk c's rows not placed; ``counter``: the
+    next chunk to take.
+    """
+    n_chunks = (n_rays - first_row + chunk_rays - 1) // chunk_rays
+    counts = np.full(n_chunks, -1, dtype=np.int64)
+    starts = np.full(n_chunks + 1, -1, dtype=np.int64)
+    starts[0] = used
+    reached = np.empty(n_chunks, dtype=np.int64)
+    counter = np.zeros(1, dtype=np.int64)
+    return n_chunks, counts, starts, reached, counter
+
+
+@jit(inline="always")
+def rows_of(chunk, first_row, chunk_rays, n_rays):
+    """Chunk ``chunk``'s rays: rows first..last-1."""
+    first = first_row + chunk * chunk_rays
+    return first, min(n_rays, first + chunk_rays)
+
+
+@jit(inline="always")
+def buffer_of(worker, side, room):
+    """The first scratch row of ``worker``'s buffer ``side`` (0 or 1)."""
+    return (2 * worker + side) * room
+
+
+@jit(inline="always")
+def place(chunk, source, first_row, chunk_rays, counts, starts, reached, loose_cells, loose_enter,
+          loose_exit, cells, t_enter, t_exit, offsets):
+    """Copy traced ``chunk`` (none when -1) from row ``source`` of the scratch to its
+    place in the output, once its start is known; set ``reached[chunk]``.
 
     The chunk's rays wrote their ends as scratch positions into
-    ``offsets[first + 1:last + 1]``; they become output positions. A chunk
-    that would end past the output is not placed (returns ``first``).
+    ``offsets``; they become output positions. A chunk that would end past
+    the output is not placed (``reached[chunk]`` is then its first row).
     """
+    if chunk < 0:
+        return
+    first, last = rows_of(chunk, first_row, chunk_rays, offsets.shape[0] - 1)
+    count = counts[chunk]
     target = start_of(chunk, starts)
     if target + count > cells.shape[0]:
-        return first
+        reached[chunk] = first
+        return
     stream_segments(loose_cells, loose_enter, loose_exit, source, count, cells, t_enter, t_exit,
                     target)
     shift = target - source
     for row in range(first + 1, last + 1):
         offsets[row] += shift
-    return last
+    reached[chunk] = last
+
+
+@jit(inline="always")
+def advance(chunk, waiting, worker, side, room, first_row, chunk_rays, counter, counts, starts,
+            reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets):
+    """A worker's step after tracing ``chunk`` (-1: none was left) into its buffer
+    ``side``: place the chunk ``waiting`` in its other buffer, and take the next.
+
+    Returns the next round's (waiting, side, chunk); the worker is done when
+    both chunks are -1.
+    """
+    place(waiting, buffer_of(worker, 1 - side, room), first_row, chunk_rays, counts, starts,
+          reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets)
+    return chunk, 1 - side, take(counter, counts.shape[0]) if chunk >= 0 else -1
