@@ -63,6 +63,7 @@ import numpy as np
 
 from . import _validate as validate
 from .kernels import exact as _exact
+from .kernels import ordered as _ordered
 from .traces import Traces
 
 SEGMENT_BYTES = 12 + 8 + 8  # a cell (3 x int32), t_enter, t_exit
@@ -211,13 +212,20 @@ def run_serial(span, inputs, n_rays, worst, buffers=None):
 PARALLEL_MIN_RAYS = 2048
 # A chunk of the ordered path has as many rays as fit in this many segments
 # (28 bytes each) at ``max_segments`` per ray, so it always fits its scratch
-# buffer. Its rays write about a tenth of that on bench.run's grid (404 rays,
-# 670 KB), and only those pages of the buffer are ever touched. Larger chunks
-# meet fewer times on a page of the output whose first write faults it in:
-# on 2 threads, 100,000 rays into fresh arrays, best of 7, two runs (ms):
-# 1 << 15 75.4-75.8, 1 << 16 75.2-76.2, 1 << 17 74.5, 1 << 18 72.8-73.3,
-# 1 << 19 71.4-71.8; into reused arrays 62.8-63.6 for all of them.
-ORDERED_SEGMENTS = 1 << 18
+# buffer. Its rays write about a tenth of that on bench.run's grid (202 rays,
+# 340 KB), and only those pages of the buffer are ever touched. On 2 threads,
+# 100,000 rays, best of 7, two runs (ms), 1 << 15 to 1 << 19: 73.3-74.5 into
+# fresh arrays, 63.9-64.3 into reused ones.
+ORDERED_SEGMENTS = 1 << 17
+# Fresh output is faulted in on all threads ahead of the chunks
+# (``ordered.touch_pages``) once the first chunks, this many per worker or a
+# sixteenth of the batch, have shown how many segments a ray has. Faulted in
+# by the chunks' own copies instead, chunks of 1 << 15 to 1 << 17 segments
+# took 74.5-76.2 ms against 71.4-71.8 for 1 << 19 (same runs as above,
+# otherwise): threads placing neighbouring chunks fault the same huge page at
+# once, each clearing a page of its own. Without huge pages every size took
+# 126.7-128.4 ms (so did the halves: 127.5-128.0).
+ORDERED_PREFIX = 4
 
 
 class BatchKernels(NamedTuple):
@@ -384,12 +392,16 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
     """Trace in chunks taken in order and placed by the threads that traced them.
 
     See the module docstring and ``kernels.ordered``.
-    ``kernels.ordered(first_row, chunk_rays, workers, *inputs, *scratch,
-    cells, t_enter, t_exit, offsets, used)`` traces rows ``first_row`` on
-    and places them from segment ``used`` on; it returns per chunk the first
-    row not placed. ``workers`` may exceed the thread count (the output is
-    the same). ``buffers``: a ``TraceBuffers`` to write into (the result is
-    views of it).
+    ``kernels.ordered(first_row, last_row, chunk_rays, workers, *inputs,
+    *scratch, cells, t_enter, t_exit, offsets, used)`` traces rows
+    ``first_row..last_row-1`` and places them from segment ``used`` on; it
+    returns per chunk the first row not placed. ``workers`` may exceed the
+    thread count (the output is the same). ``buffers``: a ``TraceBuffers``
+    to write into (the result is views of it).
+
+    Fresh output is faulted in ahead of the chunks, on all threads
+    (``ordered.touch_pages``), once a first stretch of the batch
+    (``ORDERED_PREFIX``) tells how much of the reservation the batch needs.
     """
     start = time.perf_counter()
     strata, bounds = _sampled_bounds(kernels, bound_inputs, n_rays)
@@ -406,22 +418,29 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
     scratch = scratch_segments(2 * workers * room, "ordered", keep=True)
     offsets = _ray_offsets(n_rays, buffers)
     held = None if buffers is None else buffers.segments()
-    output = held if held is not None and held[0].shape[0] >= length else segment_arrays(length)
+    fresh = held is None or held[0].shape[0] < length
+    output = segment_arrays(length) if fresh else held
     row = 0
     used = 0
-    while True:
+    stop = min(n_rays, max(ORDERED_PREFIX * workers * chunk_rays, n_rays // 16)) if fresh \
+        else n_rays
+    while row < n_rays:
         start = lap("allocate", start)
-        reached = kernels.ordered(row, chunk_rays, workers, *inputs, *scratch, *output, offsets,
-                                  used)
+        reached = kernels.ordered(row, stop, chunk_rays, workers, *inputs, *scratch, *output,
+                                  offsets, used)
         start = lap("trace", start)
-        ends = np.minimum(row + chunk_rays * np.arange(1, reached.shape[0] + 1), n_rays)
+        ends = np.minimum(row + chunk_rays * np.arange(1, reached.shape[0] + 1), stop)
         short = np.flatnonzero(reached < ends)
-        if short.size == 0:
-            used = int(offsets[n_rays])
-            break
-        # The output was too small: keep the rows placed, grow, trace the rest.
-        row = int(reached[short[0]])
+        row = int(reached[short[0]]) if short.size else stop
         used = int(offsets[row])
+        if short.size == 0:
+            if stop < n_rays:
+                # The rest of the batch by the segments per ray so far, 3% to spare.
+                expected = int(1.03 * used / row * n_rays) + room
+                _ordered.touch_pages(*output, used, min(expected, output[0].shape[0]))
+                stop = n_rays
+            continue
+        # The output was too small: keep the rows placed, grow, trace the rest.
         capacity = output[0].shape[0]
         expected = int(1.03 * used / row * n_rays) if row else 0
         capacity = max(expected, capacity + capacity // 2, used + room) + room

@@ -190,27 +190,26 @@ def box_halves(split, anchor, limit, origins, directions, low, size, shape, cell
 
 
 @jit(parallel=True)
-def box_ordered(first_row, chunk_rays, workers, origins, directions, low, size, shape,
+def box_ordered(first_row, last_row, chunk_rays, workers, origins, directions, low, size, shape,
                 loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets, used):
     """Chunks taken in order and placed by the threads that traced them
     (``exact.trace_ordered``'s contract)."""
-    n_rays = origins.shape[0]
     room = chunk_rays * (shape[0] + shape[1] + shape[2])
-    n_chunks, counts, starts, reached, counter = chain(n_rays, first_row, chunk_rays, used)
+    n_chunks, counts, starts, reached, counter = chain(first_row, last_row, chunk_rays, used)
     for worker in prange(workers):
         waiting = -1
         side = 0
         chunk = take(counter, n_chunks)
         while chunk >= 0 or waiting >= 0:
             if chunk >= 0:
-                first, last = rows_of(chunk, first_row, chunk_rays, n_rays)
+                first, last = rows_of(chunk, first_row, chunk_rays, last_row)
                 source = buffer_of(worker, side, room)
                 end, _ = box_span(first, last, origins, directions, low, size, shape, loose_cells,
                                   loose_enter, loose_exit, offsets, source, source + room)
                 post(chunk, end - source, counts, starts)
             waiting, side, chunk = advance(
-                chunk, waiting, worker, side, room, first_row, chunk_rays, counter, counts,
-                starts, reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit,
-                offsets,
+                chunk, waiting, worker, side, room, first_row, last_row, chunk_rays, counter,
+                counts, starts, reached, loose_cells, loose_enter, loose_exit, cells, t_enter,
+                t_exit, offsets,
             )
     return reached

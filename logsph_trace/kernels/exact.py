@@ -793,10 +793,11 @@ def trace_chunks(starts, regions, origins, directions, t_max, grid, cells, t_ent
 
 
 @jit(parallel=True)
-def trace_ordered(first_row, chunk_rays, workers, origins, directions, t_max, grid, loose_cells,
-                  loose_enter, loose_exit, cells, t_enter, t_exit, offsets, used):
-    """Rows ``first_row`` on, in chunks of ``chunk_rays``, taken in order by ``workers``
-    threads and placed in the output from segment ``used`` on (``kernels.ordered``).
+def trace_ordered(first_row, last_row, chunk_rays, workers, origins, directions, t_max, grid,
+                  loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets, used):
+    """Rows ``first_row..last_row-1``, in chunks of ``chunk_rays``, taken in order by
+    ``workers`` threads and placed in the output from segment ``used`` on
+    (``kernels.ordered``).
 
     Worker w traces into rows ``(2 w + side) * room`` of the scratch arrays,
     ``room = chunk_rays * max_segments`` (two buffers per worker), so a chunk
@@ -805,11 +806,10 @@ def trace_ordered(first_row, chunk_rays, workers, origins, directions, t_max, gr
     chunk's end when it was): a chunk that would end past the output and the
     chunks after it are not placed.
     """
-    n_rays = origins.shape[0]
     size = grid_scratch_size(grid)
     room = chunk_rays * max_segments(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
                                      grid.phi_edges.shape[0] - 1)
-    n_chunks, counts, starts, reached, counter = chain(n_rays, first_row, chunk_rays, used)
+    n_chunks, counts, starts, reached, counter = chain(first_row, last_row, chunk_rays, used)
     for worker in prange(workers):
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
@@ -819,15 +819,15 @@ def trace_ordered(first_row, chunk_rays, workers, origins, directions, t_max, gr
         chunk = take(counter, n_chunks)
         while chunk >= 0 or waiting >= 0:
             if chunk >= 0:
-                first, last = rows_of(chunk, first_row, chunk_rays, n_rays)
+                first, last = rows_of(chunk, first_row, chunk_rays, last_row)
                 source = buffer_of(worker, side, room)
                 end, _ = trace_span(first, last, origins, directions, t_max, grid, times, zones,
                                     lookups, loose_cells, loose_enter, loose_exit, offsets,
                                     source, source + room)
                 post(chunk, end - source, counts, starts)
             waiting, side, chunk = advance(
-                chunk, waiting, worker, side, room, first_row, chunk_rays, counter, counts,
-                starts, reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit,
-                offsets,
+                chunk, waiting, worker, side, room, first_row, last_row, chunk_rays, counter,
+                counts, starts, reached, loose_cells, loose_enter, loose_exit, cells, t_enter,
+                t_exit, offsets,
             )
     return reached

@@ -38,6 +38,7 @@ one sees the other's store and carries the chain on.
 """
 
 import numpy as np
+from numba import prange
 
 from .._jit import jit
 from .atomic import fetch_add, load_ordered, store_ordered
@@ -84,14 +85,14 @@ def start_of(chunk, starts):
 
 
 @jit(inline="always")
-def chain(n_rays, first_row, chunk_rays, used):
+def chain(first_row, last_row, chunk_rays, used):
     """A call's shared state: (n_chunks, counts, starts, reached, counter).
 
     ``counts`` and ``starts`` as in ``post`` (chunk 0 starts at ``used``);
     ``reached[c]``: the first of chunk c's rows not placed; ``counter``: the
     next chunk to take.
     """
-    n_chunks = (n_rays - first_row + chunk_rays - 1) // chunk_rays
+    n_chunks = (last_row - first_row + chunk_rays - 1) // chunk_rays
     counts = np.full(n_chunks, -1, dtype=np.int64)
     starts = np.full(n_chunks + 1, -1, dtype=np.int64)
     starts[0] = used
@@ -101,10 +102,10 @@ def chain(n_rays, first_row, chunk_rays, used):
 
 
 @jit(inline="always")
-def rows_of(chunk, first_row, chunk_rays, n_rays):
+def rows_of(chunk, first_row, chunk_rays, last_row):
     """Chunk ``chunk``'s rays: rows first..last-1."""
     first = first_row + chunk * chunk_rays
-    return first, min(n_rays, first + chunk_rays)
+    return first, min(last_row, first + chunk_rays)
 
 
 @jit(inline="always")
@@ -114,8 +115,8 @@ def buffer_of(worker, side, room):
 
 
 @jit(inline="always")
-def place(chunk, source, first_row, chunk_rays, counts, starts, reached, loose_cells, loose_enter,
-          loose_exit, cells, t_enter, t_exit, offsets):
+def place(chunk, source, first_row, last_row, chunk_rays, counts, starts, reached, loose_cells,
+          loose_enter, loose_exit, cells, t_enter, t_exit, offsets):
     """Copy traced ``chunk`` (none when -1) from row ``source`` of the scratch to its
     place in the output, once its start is known; set ``reached[chunk]``.
 
@@ -125,7 +126,7 @@ def place(chunk, source, first_row, chunk_rays, counts, starts, reached, loose_c
     """
     if chunk < 0:
         return
-    first, last = rows_of(chunk, first_row, chunk_rays, offsets.shape[0] - 1)
+    first, last = rows_of(chunk, first_row, chunk_rays, last_row)
     count = counts[chunk]
     target = start_of(chunk, starts)
     if target + count > cells.shape[0]:
@@ -140,14 +141,35 @@ def place(chunk, source, first_row, chunk_rays, counts, starts, reached, loose_c
 
 
 @jit(inline="always")
-def advance(chunk, waiting, worker, side, room, first_row, chunk_rays, counter, counts, starts,
-            reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets):
+def advance(chunk, waiting, worker, side, room, first_row, last_row, chunk_rays, counter, counts,
+            starts, reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit,
+            offsets):
     """A worker's step after tracing ``chunk`` (-1: none was left) into its buffer
     ``side``: place the chunk ``waiting`` in its other buffer, and take the next.
 
     Returns the next round's (waiting, side, chunk); the worker is done when
     both chunks are -1.
     """
-    place(waiting, buffer_of(worker, 1 - side, room), first_row, chunk_rays, counts, starts,
-          reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets)
+    place(waiting, buffer_of(worker, 1 - side, room), first_row, last_row, chunk_rays, counts,
+          starts, reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets)
     return chunk, 1 - side, take(counter, counts.shape[0]) if chunk >= 0 else -1
+
+
+@jit(parallel=True)
+def touch_pages(cells, t_enter, t_exit, first, last):
+    """Write a zero into every 4 KiB page of rows ``first..last-1`` of fresh output.
+
+    The OS gives a page its memory on its first write. Done here, spread
+    over the threads in contiguous stretches, a (huge) page is faulted in by
+    one thread; done by the chunks' copies, several threads that place
+    neighbouring chunks fault the same huge page at once, and each clears a
+    page of its own before all but one are thrown away. No other thread
+    may write these rows meanwhile.
+    """
+    step = 512  # float64 values per 4 KiB page; cells rows are 12 bytes, so 512 rows span 1.5
+    for block in prange((last - first + step - 1) // step):
+        row = first + block * step
+        cells[row, 0] = 0
+        cells[min(row + step // 2, last - 1), 0] = 0
+        t_enter[row] = 0.0
+        t_exit[row] = 0.0
