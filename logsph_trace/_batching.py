@@ -32,10 +32,12 @@ of bounded size.
   ends, and whoever posts the last count a start depends on publishes it).
   Every segment is written to the output once, bypassing the cache, by the
   thread that traced it; nothing runs on one thread but the sample of
-  bounds, and no thread waits for the others to end a round. The output is reserved
-  like the halves', from a sample of bounds with a margin, and shrinks in
-  place to the exact size at the end; should it be too small (a sample off
-  by more than the margin), the rows placed so far stay, the output grows,
+  bounds, and no thread waits for the others to end a round. The output is
+  reserved like the halves', from a sample of bounds with a margin, and
+  shrinks in place to the exact size at the end; once the first chunks
+  show how much of it the batch needs, that much is faulted in on all
+  threads ahead of the chunks. Should it be too small (a sample off by
+  more than the margin), the rows placed so far stay, the output grows,
   and the rest is traced again.
 * The exact method and the Amanatides-Woo baseline run on all three
   (their ``BatchKernels``), so their timings compare like for like. The

@@ -308,15 +308,20 @@ print("ok", __import__("numba").threading_layer())
 
 _THREADS_AT_ONCE = """
 import threading, numpy as np, logsph_trace as lt
+from logsph_trace import _batching, _validate
 grid = lt.Grid(0.3, 10, 16, 36, 18)
 rng = np.random.default_rng(0)
-o, d = rng.normal(size=(4000, 3)), rng.normal(size=(4000, 3))
+o, d = _validate.rays(rng.normal(size=(4000, 3)), rng.normal(size=(4000, 3)))
+far = np.full(len(o), np.inf)
 want = lt.trace_many(grid, o, d, parallel=False).cells
 errors = []
 def work():
     for _ in range(20):
         if not np.array_equal(lt.trace_many(grid, o, d, parallel=True).cells, want):
             errors.append("mismatch")
+        # The path of three threads or more, whose workers wait on each other.
+        if not np.array_equal(_batching.run_exact_ordered(grid, o, d, far, 3).cells, want):
+            errors.append("mismatch in ordered chunks")
 threads = [threading.Thread(target=work) for _ in range(4)]
 for t in threads: t.start()
 for t in threads: t.join()
@@ -345,6 +350,12 @@ def test_python_threads_may_call_in_parallel_on_the_workqueue_layer():
     result = _run(_THREADS_AT_ONCE, NUMBA_THREADING_LAYER="workqueue")
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.strip() == "ok workqueue"
+
+
+def test_python_threads_may_call_in_parallel_on_the_default_layer():
+    result = _run(_THREADS_AT_ONCE)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.startswith("ok")
 
 
 def test_the_ordered_chunks_scratch_is_kept_between_calls(monkeypatch):

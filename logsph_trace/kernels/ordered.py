@@ -19,8 +19,9 @@ Compared with tracing a round of chunks into scratch and then gathering
 them (the path this replaced), nothing waits for the slowest thread of a
 round, no phase runs on one thread, and the output is written once, by
 non-temporal stores from a scratch small enough to stay in the cache
-(``stream.stream_segments``), each page faulted in by the thread that
-writes it.
+(``stream.stream_segments``). Its pages are faulted in ahead of the
+chunks, on all threads, each a contiguous stretch (``touch_pages``), once
+the first chunks have shown how many the batch needs.
 
 A chunk is sized to fit its buffer whatever its rays do (``max_segments``
 per ray), so tracing never stops inside a chunk. The output is reserved
@@ -43,9 +44,6 @@ from numba import prange
 from .._jit import jit
 from .atomic import fetch_add, load_ordered, store_ordered
 from .stream import stream_segments
-
-# A start past the output's room (saturating): the chunks from here on are not placed.
-UNPLACED = 1 << 60
 
 
 @jit(inline="always")
@@ -71,7 +69,7 @@ def post(chunk, count, counts, starts):
         count = load_ordered(counts, chunk)
         if count < 0:
             return  # this one is: its poster carries on
-        store_ordered(starts, chunk + 1, min(start + count, UNPLACED))
+        store_ordered(starts, chunk + 1, start + count)
         chunk += 1
 
 
