@@ -435,16 +435,15 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
         short = np.flatnonzero(reached < ends)
         row = int(reached[short[0]]) if short.size else stop
         used = int(offsets[row])
+        # The whole batch by the segments per ray so far, with 3% to spare.
+        expected = int(1.03 * used / row * n_rays) + room if row else 0
         if short.size == 0:
             if stop < n_rays:
-                # The rest of the batch by the segments per ray so far, 3% to spare.
-                expected = int(1.03 * used / row * n_rays) + room
                 _ordered.touch_pages(*output, used, min(expected, output[0].shape[0]))
                 stop = n_rays
             continue
         # The output was too small: keep the rows placed, grow, trace the rest.
         capacity = output[0].shape[0]
-        expected = int(1.03 * used / row * n_rays) if row else 0
         capacity = max(expected, capacity + capacity // 2, used + room) + room
         validate.fits("origins", capacity * SEGMENT_BYTES,
                       f"tracing {n_rays:,} rays (about {capacity:,} segments)")

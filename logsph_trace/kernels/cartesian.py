@@ -2,7 +2,8 @@
 
 Written in the same style as the exact log-spherical kernel (scalar state,
 the same segment output, the same batching: one appending pass on one
-thread, two halves on two, chunks placed in order on more) so timings compare like for like.
+thread, two halves on two, chunks placed in order on more) so timings
+compare like for like.
 """
 
 import math

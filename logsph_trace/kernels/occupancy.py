@@ -698,9 +698,9 @@ def near_masks(free, words, n_rho, skip, view, masks):
             for thread in range(1, threads):
                 flags |= words[thread, word]
             if flags != 0:
-                for index in range(index, min(word * 8 + 8, column * n_rho + skip)):
-                    if (flags >> np.uint64(8 * (index - word * 8))) & np.uint64(0xFF) != 0:
-                        mask |= np.uint64(1) << np.uint64(index - column * n_rho)
+                for cell in range(index, min(word * 8 + 8, column * n_rho + skip)):
+                    if (flags >> np.uint64(8 * (cell - word * 8))) & np.uint64(0xFF) != 0:
+                        mask |= np.uint64(1) << np.uint64(cell - column * n_rho)
             i = word * 8 + 8 - column * n_rho
         masks[column] = mask
 
