@@ -34,9 +34,9 @@ of bounded size.
   thread that traced it; nothing runs on one thread but the sample of
   bounds, and no thread waits for the others to end a round. The output is
   reserved like the halves', from a sample of bounds with a margin, and
-  shrinks in place to the exact size at the end; once the first chunks
-  show how much of it the batch needs, that much is faulted in on all
-  threads ahead of the chunks. Should it be too small (a sample off by
+  shrinks in place to the exact size at the end; its fresh pages are
+  faulted in by the same threads between chunks, a block by one thread, a
+  little ahead of the chunks. Should it be too small (a sample off by
   more than the margin), the rows placed so far stay, the output grows,
   and the rest is traced again.
 * The exact method and the Amanatides-Woo baseline run on all three
@@ -65,7 +65,6 @@ import numpy as np
 
 from . import _validate as validate
 from .kernels import exact as _exact
-from .kernels import ordered as _ordered
 from .traces import Traces
 
 SEGMENT_BYTES = 12 + 8 + 8  # a cell (3 x int32), t_enter, t_exit
@@ -219,15 +218,14 @@ PARALLEL_MIN_RAYS = 2048
 # 100,000 rays, best of 7, two runs (ms), 1 << 15 to 1 << 19: 73.3-74.5 into
 # fresh arrays, 63.9-64.3 into reused ones.
 ORDERED_SEGMENTS = 1 << 17
-# Fresh output is faulted in on all threads ahead of the chunks
-# (``ordered.touch_pages``) once the first chunks, this many per worker or a
-# sixteenth of the batch, have shown how many segments a ray has. Faulted in
-# by the chunks' own copies instead, chunks of 1 << 15 to 1 << 17 segments
-# took 74.5-76.2 ms against 71.4-71.8 for 1 << 19 (same runs as above,
-# otherwise): threads placing neighbouring chunks fault the same huge page at
-# once, each clearing a page of its own. Without huge pages every size took
-# 126.7-128.4 ms (so did the halves: 127.5-128.0).
-ORDERED_PREFIX = 4
+# Fresh output is faulted in by the workers between chunks, in blocks of
+# ``ordered.TOUCH_ROWS`` claimed in order, a block by one thread, ahead of the
+# chunks (``ordered.touch_ahead``). Faulted in by the chunks' own copies
+# instead, chunks of 1 << 15 to 1 << 17 segments took 74.5-76.2 ms against
+# 71.4-71.8 for 1 << 19 (same runs as above, otherwise): threads placing
+# neighbouring chunks fault the same huge page at once, each clearing a page
+# of its own. Without huge pages every size took 126.7-128.4 ms (so did the
+# halves: 127.5-128.0).
 
 
 class BatchKernels(NamedTuple):
@@ -401,9 +399,8 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
     thread count (the output is the same). ``buffers``: a ``TraceBuffers``
     to write into (the result is views of it).
 
-    Fresh output is faulted in ahead of the chunks, on all threads
-    (``ordered.touch_pages``), once a first stretch of the batch
-    (``ORDERED_PREFIX``) tells how much of the reservation the batch needs.
+    Fresh output is faulted in by the workers as they go, each block of it
+    by one thread, ahead of the chunks (``ordered.touched``).
     """
     start = time.perf_counter()
     strata, bounds = _sampled_bounds(kernels, bound_inputs, n_rays)
@@ -424,30 +421,26 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
     output = segment_arrays(length) if fresh else held
     row = 0
     used = 0
-    stop = min(n_rays, max(ORDERED_PREFIX * workers * chunk_rays, n_rays // 16)) if fresh \
-        else n_rays
     while row < n_rays:
         start = lap("allocate", start)
-        reached = kernels.ordered(row, stop, chunk_rays, workers, *inputs, *scratch, *output,
-                                  offsets, used)
+        reached = kernels.ordered(row, n_rays, chunk_rays, workers, *inputs, *scratch, *output,
+                                  offsets, used, output[0].shape[0] if fresh else used)
         start = lap("trace", start)
-        ends = np.minimum(row + chunk_rays * np.arange(1, reached.shape[0] + 1), stop)
+        ends = np.minimum(row + chunk_rays * np.arange(1, reached.shape[0] + 1), n_rays)
         short = np.flatnonzero(reached < ends)
-        row = int(reached[short[0]]) if short.size else stop
+        row = int(reached[short[0]]) if short.size else n_rays
         used = int(offsets[row])
+        if short.size == 0:
+            break
+        # The output was too small: keep the rows placed, grow, trace the rest.
         # The whole batch by the segments per ray so far, with 3% to spare.
         expected = int(1.03 * used / row * n_rays) + room if row else 0
-        if short.size == 0:
-            if stop < n_rays:
-                _ordered.touch_pages(*output, used, min(expected, output[0].shape[0]))
-                stop = n_rays
-            continue
-        # The output was too small: keep the rows placed, grow, trace the rest.
         capacity = output[0].shape[0]
         capacity = max(expected, capacity + capacity // 2, used + room) + room
         validate.fits("origins", capacity * SEGMENT_BYTES,
                       f"tracing {n_rays:,} rays (about {capacity:,} segments)")
         start = lap("other", start)
+        fresh = True  # the rows past ``used`` of the grown arrays
         if buffers is None:  # in place; buffers may be viewed by an earlier result
             output = tuple(resized(a, capacity) for a in output)
         else:

@@ -37,9 +37,13 @@ SCRIPT = textwrap.dedent(
     cone = lt.trace_cone(grid, [0.4, 1.5, 1.2], [-0.1, -0.4, 1.0], 0.1, n_rays=20)
     cart = CartesianGrid((-10.0, -10.0, -10.0), (10.0, 10.0, 10.0), (7, 8, 9))
     boxes = cart.trace_many(origins, directions)
-    # The path of three threads or more, in chunks of a ray or two on 3 workers.
+    # The path of three threads or more, in chunks of a ray or two on 3 workers,
+    # faulting its output in by blocks of 5 rows (many blocks, some claimed
+    # ahead by the pacing, some by the chunks' copies).
     from logsph_trace import _batching, _validate
+    from logsph_trace.kernels import ordered as ordered_kernels
     _batching.ORDERED_SEGMENTS = 200
+    ordered_kernels.TOUCH_ROWS = 5
     o, d = _validate.rays(origins, directions)
     ordered = _batching.run_exact_ordered(grid, o, d, np.full(len(o), np.inf), 3)
     np.savez(sys.argv[1], offsets=traces.offsets, cells=traces.cells, t_enter=traces.t_enter,

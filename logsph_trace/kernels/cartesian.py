@@ -192,11 +192,13 @@ def box_halves(split, anchor, limit, origins, directions, low, size, shape, cell
 
 @jit(parallel=True)
 def box_ordered(first_row, last_row, chunk_rays, workers, origins, directions, low, size, shape,
-                loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets, used):
+                loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets, used,
+                fresh_end):
     """Chunks taken in order and placed by the threads that traced them
     (``exact.trace_ordered``'s contract)."""
     room = chunk_rays * (shape[0] + shape[1] + shape[2])
-    n_chunks, counts, starts, reached, counter = chain(first_row, last_row, chunk_rays, used)
+    n_chunks, counts, starts, reached, counter, fresh = chain(first_row, last_row, chunk_rays,
+                                                              used, fresh_end)
     for worker in prange(workers):
         waiting = -1
         side = 0
@@ -209,8 +211,8 @@ def box_ordered(first_row, last_row, chunk_rays, workers, origins, directions, l
                                   loose_enter, loose_exit, offsets, source, source + room)
                 post(chunk, end - source, counts, starts)
             waiting, side, chunk = advance(
-                chunk, waiting, worker, side, room, first_row, last_row, chunk_rays, counter,
-                counts, starts, reached, loose_cells, loose_enter, loose_exit, cells, t_enter,
-                t_exit, offsets,
+                chunk, waiting, worker, side, room, first_row, last_row, chunk_rays, workers,
+                counter, counts, starts, reached, fresh, loose_cells, loose_enter, loose_exit,
+                cells, t_enter, t_exit, offsets,
             )
     return reached

@@ -19,9 +19,20 @@ Compared with tracing a round of chunks into scratch and then gathering
 them (the path this replaced), nothing waits for the slowest thread of a
 round, no phase runs on one thread, and the output is written once, by
 non-temporal stores from a scratch small enough to stay in the cache
-(``stream.stream_segments``). Its pages are faulted in ahead of the
-chunks, on all threads, each a contiguous stretch (``touch_pages``), once
-the first chunks have shown how many the batch needs.
+(``stream.stream_segments``).
+
+Fresh output is faulted in by the same workers while they trace, in
+blocks of ``TOUCH_ROWS`` rows claimed in order from a second counter
+(``touch_ahead``, ``touched``): each taken chunk lets its worker fault in
+blocks up to where the chunks taken so far will end, by the segments a
+chunk has had, plus a lead. A block is faulted in by one thread, so no two
+threads clear the same fresh (huge) page at once, as they do when the
+chunks' copies fault it in; and the faulting runs between the tracing
+instead of as a phase of its own, in which every thread would wait on the
+memory bandwidth that clearing pages takes. A chunk is copied only into
+blocks already faulted in (``touched``: the placer claims them itself
+when the workers have not got that far), so a block is never cleared after
+a chunk was written into it.
 
 A chunk is sized to fit its buffer whatever its rays do (``max_segments``
 per ray), so tracing never stops inside a chunk. The output is reserved
@@ -35,15 +46,25 @@ depends on the counts of chunks taken earlier, each by a worker that was
 running when it took it and posts that count before it waits for
 anything. Counts and starts are sequentially consistent atomics, so of a
 thread posting a count and one publishing the start before it, at least
-one sees the other's store and carries the chain on.
+one sees the other's store and carries the chain on. A block being faulted
+in is finished by the thread that claimed it, which waits for nothing
+meanwhile.
 """
 
 import numpy as np
-from numba import prange
 
 from .._jit import jit
 from .atomic import fetch_add, load_ordered, store_ordered
 from .stream import stream_segments
+
+# Output rows faulted in at a time by one worker: 1 MiB of each float64 array
+# and 1.5 MiB of the cells.
+TOUCH_ROWS = 1 << 17
+# The layout of ``chain``'s ``fresh``.
+FRESH_FIRST = 0
+FRESH_END = 1
+CLAIMED = 2
+DONE = 3
 
 
 @jit(inline="always")
@@ -83,12 +104,15 @@ def start_of(chunk, starts):
 
 
 @jit(inline="always")
-def chain(first_row, last_row, chunk_rays, used):
-    """A call's shared state: (n_chunks, counts, starts, reached, counter).
+def chain(first_row, last_row, chunk_rays, used, fresh_end):
+    """A call's shared state: (n_chunks, counts, starts, reached, counter, fresh).
 
     ``counts`` and ``starts`` as in ``post`` (chunk 0 starts at ``used``);
     ``reached[c]``: the first of chunk c's rows not placed; ``counter``: the
-    next chunk to take.
+    next chunk to take. ``fresh``: the output rows ``used..fresh_end-1``,
+    not yet faulted in, as ``touched`` takes them, in one array: their first
+    row (``FRESH_FIRST``), their end (``FRESH_END``), the next block to
+    claim (``CLAIMED``), and from ``DONE`` on per block 1 once faulted in.
     """
     n_chunks = (last_row - first_row + chunk_rays - 1) // chunk_rays
     counts = np.full(n_chunks, -1, dtype=np.int64)
@@ -96,7 +120,76 @@ def chain(first_row, last_row, chunk_rays, used):
     starts[0] = used
     reached = np.empty(n_chunks, dtype=np.int64)
     counter = np.zeros(1, dtype=np.int64)
-    return n_chunks, counts, starts, reached, counter
+    n_blocks = (max(fresh_end - used, 0) + TOUCH_ROWS - 1) // TOUCH_ROWS
+    fresh = np.zeros(DONE + n_blocks, dtype=np.int64)
+    fresh[FRESH_FIRST] = used
+    fresh[FRESH_END] = max(fresh_end, used)
+    return n_chunks, counts, starts, reached, counter, fresh
+
+
+@jit(inline="always")
+def touch_rows(cells, t_enter, t_exit, first, last):
+    """Write a zero into every 4 KiB page of rows ``first..last-1``: the OS gives
+    a page its memory on its first write."""
+    step = 512  # float64 values per 4 KiB page; cells rows are 12 bytes, so 512 rows span 1.5
+    for row in range(first, last, step):
+        cells[row, 0] = 0
+        cells[min(row + step // 2, last - 1), 0] = 0
+        t_enter[row] = 0.0
+        t_exit[row] = 0.0
+
+
+@jit(inline="always")
+def _claim_block(fresh, cells, t_enter, t_exit):
+    """Claim the next block of ``fresh`` and fault it in (nothing when none is left)."""
+    block = fetch_add(fresh, CLAIMED, 1)
+    if block < fresh.shape[0] - DONE:
+        row = fresh[FRESH_FIRST] + block * TOUCH_ROWS
+        touch_rows(cells, t_enter, t_exit, row, min(fresh[FRESH_END], row + TOUCH_ROWS))
+        store_ordered(fresh, DONE + block, 1)
+
+
+@jit(inline="always")
+def touched(first, last, fresh, cells, t_enter, t_exit):
+    """Return once output rows ``first..last-1`` are faulted in (those that are fresh).
+
+    Claims and faults in blocks itself up to the last it needs, then waits
+    for any that another worker claimed and is faulting in.
+    """
+    fresh_first = fresh[FRESH_FIRST]
+    low = max(first, fresh_first)
+    high = min(last, fresh[FRESH_END])
+    if low >= high:
+        return
+    block_low = (low - fresh_first) // TOUCH_ROWS
+    block_high = (high - 1 - fresh_first) // TOUCH_ROWS
+    while load_ordered(fresh, CLAIMED) <= block_high:
+        _claim_block(fresh, cells, t_enter, t_exit)
+    for block in range(block_low, block_high + 1):
+        while load_ordered(fresh, DONE + block) == 0:
+            pass
+
+
+@jit(inline="always")
+def touch_ahead(chunk, lead, starts, fresh, cells, t_enter, t_exit):
+    """Fault in fresh blocks up to where chunk ``chunk + lead`` will about end.
+
+    Paced by the segments a chunk has had: by a start already published,
+    that of chunk ``chunk - lead`` (nothing is faulted in while it is not).
+    """
+    known = chunk - lead
+    if known < 1:
+        return
+    known_start = load_ordered(starts, known)
+    if known_start < 0:
+        return
+    per_chunk = (known_start - starts[0]) / known
+    target = min(fresh[FRESH_END], starts[0] + int(per_chunk * (chunk + lead + 1)))
+    while True:
+        block = load_ordered(fresh, CLAIMED)
+        if block >= fresh.shape[0] - DONE or fresh[FRESH_FIRST] + block * TOUCH_ROWS >= target:
+            return
+        _claim_block(fresh, cells, t_enter, t_exit)
 
 
 @jit(inline="always")
@@ -113,14 +206,15 @@ def buffer_of(worker, side, room):
 
 
 @jit(inline="always")
-def place(chunk, source, first_row, last_row, chunk_rays, counts, starts, reached, loose_cells,
-          loose_enter, loose_exit, cells, t_enter, t_exit, offsets):
+def place(chunk, source, first_row, last_row, chunk_rays, counts, starts, reached, fresh,
+          loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets):
     """Copy traced ``chunk`` (none when -1) from row ``source`` of the scratch to its
     place in the output, once its start is known; set ``reached[chunk]``.
 
     The chunk's rays wrote their ends as scratch positions into
     ``offsets``; they become output positions. A chunk that would end past
     the output is not placed (``reached[chunk]`` is then its first row).
+    Fresh rows are faulted in first (``touched``).
     """
     if chunk < 0:
         return
@@ -130,6 +224,7 @@ def place(chunk, source, first_row, last_row, chunk_rays, counts, starts, reache
     if target + count > cells.shape[0]:
         reached[chunk] = first
         return
+    touched(target, target + count, fresh, cells, t_enter, t_exit)
     stream_segments(loose_cells, loose_enter, loose_exit, source, count, cells, t_enter, t_exit,
                     target)
     shift = target - source
@@ -139,35 +234,21 @@ def place(chunk, source, first_row, last_row, chunk_rays, counts, starts, reache
 
 
 @jit(inline="always")
-def advance(chunk, waiting, worker, side, room, first_row, last_row, chunk_rays, counter, counts,
-            starts, reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit,
-            offsets):
+def advance(chunk, waiting, worker, side, room, first_row, last_row, chunk_rays, workers, counter,
+            counts, starts, reached, fresh, loose_cells, loose_enter, loose_exit, cells, t_enter,
+            t_exit, offsets):
     """A worker's step after tracing ``chunk`` (-1: none was left) into its buffer
-    ``side``: place the chunk ``waiting`` in its other buffer, and take the next.
+    ``side``: place the chunk ``waiting`` in its other buffer, take the next,
+    and fault in fresh output ahead of it (``touch_ahead``, ``workers``
+    chunks on).
 
     Returns the next round's (waiting, side, chunk); the worker is done when
     both chunks are -1.
     """
     place(waiting, buffer_of(worker, 1 - side, room), first_row, last_row, chunk_rays, counts,
-          starts, reached, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets)
-    return chunk, 1 - side, take(counter, counts.shape[0]) if chunk >= 0 else -1
-
-
-@jit(parallel=True)
-def touch_pages(cells, t_enter, t_exit, first, last):
-    """Write a zero into every 4 KiB page of rows ``first..last-1`` of fresh output.
-
-    The OS gives a page its memory on its first write. Done here, spread
-    over the threads in contiguous stretches, a (huge) page is faulted in by
-    one thread; done by the chunks' copies, several threads that place
-    neighbouring chunks fault the same huge page at once, and each clears a
-    page of its own before all but one are thrown away. No other thread
-    may write these rows meanwhile.
-    """
-    step = 512  # float64 values per 4 KiB page; cells rows are 12 bytes, so 512 rows span 1.5
-    for block in prange((last - first + step - 1) // step):
-        row = first + block * step
-        cells[row, 0] = 0
-        cells[min(row + step // 2, last - 1), 0] = 0
-        t_enter[row] = 0.0
-        t_exit[row] = 0.0
+          starts, reached, fresh, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit,
+          offsets)
+    following = take(counter, counts.shape[0]) if chunk >= 0 else -1
+    if following >= 0:
+        touch_ahead(following, workers, starts, fresh, cells, t_enter, t_exit)
+    return chunk, 1 - side, following
