@@ -159,8 +159,10 @@ def box_span_back(first, last, origins, directions, low, size, shape, block_cell
         begin = max(first, end - min(rays, (top - floor) // worst))
         if begin == end:
             return top, end
+        # ``begin - begin``, not a literal 0 (``exact.trace_span_back``).
         count, _ = box_span(begin, end, origins, directions, low, size, shape, block_cells,
-                            block_enter, block_exit, offsets, 0, block_enter.shape[0])
+                            block_enter, block_exit, offsets, begin - begin,
+                            block_enter.shape[0])
         top = place_block(block_cells, block_enter, block_exit, count, cells, t_enter, t_exit,
                           offsets, begin, end, top)
         end = begin

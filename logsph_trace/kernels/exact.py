@@ -699,8 +699,10 @@ def trace_span_back(first, last, origins, directions, t_max, grid, times, zones,
         begin = max(first, end - min(rays, (top - floor) // worst))
         if begin == end:
             return top, end
+        # ``begin - begin``, not a literal 0: a literal would compile trace_span
+        # and trace_ray once more, specialised on it (about 4 s cold).
         count, _ = trace_span(begin, end, origins, directions, t_max, grid, times, zones, lookups,
-                              block_cells, block_enter, block_exit, offsets, 0,
+                              block_cells, block_enter, block_exit, offsets, begin - begin,
                               block_enter.shape[0])
         top = place_block(block_cells, block_enter, block_exit, count, cells, t_enter, t_exit,
                           offsets, begin, end, top)
