@@ -149,7 +149,7 @@ def _claim_block(fresh, cells, t_enter, t_exit):
         store_ordered(fresh, DONE + block, 1)
 
 
-@jit(inline="always")
+@jit
 def touched(first, last, fresh, cells, t_enter, t_exit):
     """Return once output rows ``first..last-1`` are faulted in (those that are fresh).
 
@@ -170,7 +170,7 @@ def touched(first, last, fresh, cells, t_enter, t_exit):
             pass
 
 
-@jit(inline="always")
+@jit
 def touch_ahead(chunk, lead, starts, fresh, cells, t_enter, t_exit):
     """Fault in fresh blocks up to where chunk ``chunk + lead`` will about end.
 
