@@ -393,9 +393,10 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
 
     See the module docstring and ``kernels.ordered``.
     ``kernels.ordered(first_row, last_row, chunk_rays, workers, *inputs,
-    *scratch, cells, t_enter, t_exit, offsets, used)`` traces rows
-    ``first_row..last_row-1`` and places them from segment ``used`` on; it
-    returns per chunk the first row not placed. ``workers`` may exceed the
+    *scratch, cells, t_enter, t_exit, offsets, used, fresh_end)`` traces rows
+    ``first_row..last_row-1`` and places them from segment ``used`` on,
+    faulting in the fresh rows ``used..fresh_end-1`` as it goes; it returns
+    per chunk the first row not placed. ``workers`` may exceed the
     thread count (the output is the same). ``buffers``: a ``TraceBuffers``
     to write into (the result is views of it).
 
