@@ -158,14 +158,17 @@ def line_geometry(ox, oy, oz, dx, dy, dz):
 
 
 @jit(inline="always")
-def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, jt, jt_limit, theta_edges, theta_full, lookups,
-               reuse):
+def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, theta_edges, theta_full,
+               lookups, reuse):
     """Phase 1 for theta: one monotone sweep, or a jump where the line meets the y axis.
 
-    ``jt`` and ``jt_limit`` are the zones of the origin and of the direction
-    (the limit as t -> inf); ``c`` is the line's closest point to the centre
-    (``line_geometry``). Returns the start zone, the sweep sign, the number of
-    half-planes crossed and ``t_axis``, the time of the jump (inf when none).
+    ``c`` is the line's closest point to the centre and ``t_closest`` its
+    time (``line_geometry``), which sets the clock of every time here. The ray
+    starts at time ``t_start`` (0 for a trace), at the point whose x and z
+    are ``ox``, ``oz``; ``jt`` and ``jt_limit`` are the zones of that point
+    and of the direction (the limit as t -> inf). Returns
+    the start zone, the sweep sign, the number of half-planes crossed and
+    ``t_axis``, the time of the jump (inf when none).
     The ambiguous case of a zone wider than half a turn is decided once and
     kept in ``lookups[4]`` (read back when ``reuse``).
     """
@@ -181,7 +184,7 @@ def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, jt, jt_limit, theta_edges, the
         pass  # parallel to the y axis: theta never changes
     elif sweep_sign == 0.0:
         meets_axis = t_closest - (cx * dx + cz * dz) / (dx * dx + dz * dz)
-        if meets_axis > 0.0:
+        if meets_axis > t_start:
             if jt != jt_limit:
                 t_axis = meets_axis
         else:
@@ -206,12 +209,13 @@ def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, jt, jt_limit, theta_edges, the
 
 
 @jit(inline="always")
-def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, grid, lookups,
-             reuse):
+def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_start, kp, kp_limit, grid,
+             lookups, reuse):
     """Phase 1 for phi: up to two monotone branches split at the turning point,
     or piecewise constant with a jump at the centre.
 
-    ``kp`` and ``kp_limit`` are the zones of the origin and of the direction;
+    The clock and the start as in ``theta_plan`` (the start point is ``o``);
+    ``kp`` and ``kp_limit`` are the zones of that point and of the direction;
     ``c`` is the line's closest point to the centre. Along c + u d, tan(phi)
     has a derivative whose numerator is ``slope * u + offset``, so phi turns
     at ``u = -offset / slope``; with c perpendicular to d these are ``-c_y``
@@ -237,12 +241,12 @@ def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, gr
         if ox == 0.0 and oy == 0.0 and oz == 0.0:
             kp = kp_limit
             ph2_start = kp_limit
-        elif t_closest > 0.0 and h2 == 0.0 and kp != kp_limit:
+        elif t_closest > t_start and h2 == 0.0 and kp != kp_limit:
             t_turn = t_closest
             ph2_start = kp_limit
     else:
         turn = -offset / slope if slope != 0.0 else inf
-        if -t_closest < turn < inf:
+        if t_start - t_closest < turn < inf:
             t_turn = t_closest + turn
             if reuse:
                 ph2_start = lookups[7]
@@ -260,10 +264,11 @@ def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, gr
 
 
 @jit(inline="always")
-def theta_times(cx, cz, dx, dz, t_closest, jt, jt_limit, th_sigma, th_steps, t_axis, theta_sin,
-                theta_cos, theta_full, t_final, slack, times, zones):
-    """Phase 2 for theta: the crossing times and zones entered, in order, up to
-    ``t_final``, into ``times[THETA, 1:]`` and ``zones[THETA, 1:]``; returns their number."""
+def theta_times(cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, th_sigma, th_steps, t_axis,
+                theta_sin, theta_cos, theta_full, t_final, slack, times, zones):
+    """Phase 2 for theta: the crossing times and zones entered, in order, from
+    ``t_start`` up to ``t_final``, into ``times[THETA, 1:]`` and ``zones[THETA, 1:]``;
+    returns their number."""
     n_theta = theta_sin.shape[0] - 1
     n_zones_theta = n_theta if theta_full else n_theta + 1
     n_t = 0
@@ -272,7 +277,7 @@ def theta_times(cx, cz, dx, dz, t_closest, jt, jt_limit, th_sigma, th_steps, t_a
         zones[THETA, 1] = jt_limit
         n_t = 1
     zone = jt
-    t_prev = 0.0
+    t_prev = t_start
     for step in range(th_steps):
         edge = _theta_edge_ahead(zone, th_sigma, n_theta, theta_full)
         t_prev = _clamp(
@@ -357,8 +362,8 @@ def _reverse(row, first, count):
 
 
 @jit(inline="always")
-def phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps, ph2_start,
-              ph2_steps, ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones):
+def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, ph1_steps,
+              ph2_start, ph2_steps, ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones):
     """Phase 2 for phi: as ``theta_times``, into row ``PHI``; returns their number."""
     inf = np.inf
     b2 = dx * dx + dz * dz
@@ -366,12 +371,12 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps
     ca2 = cx * cx + cz * cz
     n_p = 0
     zone = kp
-    t_prev = 0.0
+    t_prev = t_start
     done = False  # a crossing past t_final ends the list
     sigma = 1 if ph2_start > kp else -1
     row = times[PHI]
     _cone_times(kp + 1 if sigma > 0 else kp - ph1_steps + 1, ph1_steps, phi_tan2, phi_nappe, row,
-                1, t_closest, cy, dy, cab, ca2, b2, True, 0.0, slack)
+                1, t_closest, cy, dy, cab, ca2, b2, True, t_start, slack)
     if sigma < 0:
         _reverse(row, 1, ph1_steps)
     for step in range(ph1_steps):
@@ -394,7 +399,7 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps
             n_p += 1
     if not done:
         sigma = 1 if kp_limit > zone else -1
-        branch_start = t_turn if t_turn < inf else 0.0
+        branch_start = t_turn if t_turn < inf else t_start
         _cone_times(zone + 1 if sigma > 0 else zone - ph2_steps + 1, ph2_steps, phi_tan2,
                     phi_nappe, row, n_p + 1, t_closest, cy, dy, cab, ca2, b2, False, branch_start,
                     slack)
@@ -489,7 +494,8 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
         lookups[2] = jt
         lookups[3] = jt_limit
     jt, th_sigma, th_steps, t_axis = theta_plan(
-        ox, oz, cx, cz, dx, dz, t_closest, jt, jt_limit, theta_edges, theta_full, lookups, reuse
+        ox, oz, cx, cz, dx, dz, t_closest, 0.0, jt, jt_limit, theta_edges, theta_full, lookups,
+        reuse,
     )
     if reuse:
         kp_limit = lookups[5]
@@ -500,7 +506,7 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
         lookups[5] = kp_limit
         lookups[6] = kp
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
-        ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, grid, lookups, reuse,
+        ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, 0.0, kp, kp_limit, grid, lookups, reuse,
     )
 
     if mode == BOUND:
@@ -537,10 +543,11 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
     # The last rho crossing leaves the region for good: nothing after it matters.
     t_final = times[RHO, n_r]
 
-    n_t = theta_times(cx, cz, dx, dz, t_closest, jt, jt_limit, th_sigma, th_steps, t_axis,
+    n_t = theta_times(cx, cz, dx, dz, t_closest, 0.0, jt, jt_limit, th_sigma, th_steps, t_axis,
                       grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times, zones)
-    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps, ph2_start,
-                    ph2_steps, ph_jump, grid.phi_tan2, grid.phi_nappe, t_final, slack, times, zones)
+    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, 0.0, kp, kp_limit, t_turn, ph1_steps,
+                    ph2_start, ph2_steps, ph_jump, grid.phi_tan2, grid.phi_nappe, t_final, slack,
+                    times, zones)
 
     # ---- phase 3: merge the three sorted lists; emit while inside.
     # Crossings that coincide (a corner where a sphere, a half-plane and a cone

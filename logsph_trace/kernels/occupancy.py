@@ -86,6 +86,7 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     leaves the gap), when the cells below it are known to be flagged by
     other rays (``occupancy._mark_off_centre``); a ray that ends before it
     (or within 1e-9 of it) starts on the last sphere it crosses before.
+    Wherever the walk starts, its times are the trace's, from the sensor.
     """
     rho_sq = grid.rho_sq
     theta_edges = grid.theta_edges
@@ -98,40 +99,43 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     slack = 1e-9 * (math.sqrt(rho_sq[n_rho]) + math.sqrt(ox * ox + oy * oy + oz * oz))
     snap = 1e-3 * slack
     i = ir
-    # The trace's own line geometry and stop, for the end of the ray (below).
-    t_closest0, h2_0, _, _, _ = line_geometry(ox, oy, oz, dx, dy, dz)
-    t_max0 = t_max
+    # Every time is on the trace's clock, from the sensor: a crossing is then
+    # the very number the trace computes (the same closed form of the same
+    # line), so a ray ending on a face ends where the trace ends it.
+    t_closest, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
+    t_start = 0.0  # where the walk starts: (sx, sy, sz)
+    sx = ox
+    sy = oy
+    sz = oz
     if ir == -1:
         # In the egocentric gap: start where the ray leaves it, on the inner
         # sphere. Near the centre a ray sweeps through many angular zones (from
         # the origin's direction to its own) that hold no cell.
-        t_in = t_closest0 + math.sqrt(max(rho_sq[0] - h2_0, 0.0))
-        if t_in >= t_max:
+        t_start = t_closest + math.sqrt(max(rho_sq[0] - h2, 0.0))
+        if t_start >= t_max:
             return -1  # ends in the gap
         i = 0
         if skip > 0:
             # Outside the gap rho only grows, so each sphere is crossed once:
             # start on the last one up to ``skip`` crossed before the end.
-            i = min(skip, _last_at_or_below((t_max - t_closest0) ** 2 + h2_0, rho_sq))
+            i = min(skip, _last_at_or_below((t_max - t_closest) ** 2 + h2, rho_sq))
             before_end = t_max * (1.0 - 1e-9)
-            while i > 0 and _sphere_time(t_closest0, h2_0, rho_sq[i], True) >= before_end:
+            while i > 0 and _sphere_time(t_closest, h2, rho_sq[i], True) >= before_end:
                 i -= 1
             if i > 0:
-                t_in = _sphere_time(t_closest0, h2_0, rho_sq[i], True)
-        ox += t_in * dx
-        oy += t_in * dy
-        oz += t_in * dz
-        t_max -= t_in
+                t_start = _sphere_time(t_closest, h2, rho_sq[i], True)
+        sx += t_start * dx
+        sy += t_start * dy
+        sz += t_start * dz
         # The zones of the last ray walked with these ``lookups`` are guesses.
-        jt = theta_zone_near(ox, oz, lookups[0], grid)
-        kp = phi_zone_near(ox, oy, oz, lookups[1], grid)
+        jt = theta_zone_near(sx, sz, lookups[0], grid)
+        kp = phi_zone_near(sx, sy, sz, lookups[1], grid)
         lookups[0] = jt
         lookups[1] = kp
-    t_closest, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
     if h2 >= rho_sq[n_rho]:
         return -1  # the line misses the outer sphere (or only touches it)
     t_leave = t_closest + math.sqrt(rho_sq[n_rho] - h2)
-    if t_leave <= 0.0:
+    if t_leave <= t_start:
         return -1  # beyond rho_max and moving away
     t_final = min(t_max, t_leave)
 
@@ -140,15 +144,19 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     lookups[2] = jt_limit
     lookups[3] = kp_limit
     jt, th_sigma, th_steps, t_axis = theta_plan(
-        ox, oz, cx, cz, dx, dz, t_closest, jt, jt_limit, theta_edges, theta_full, lookups, False
+        sx, sz, cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, theta_edges, theta_full,
+        lookups, False,
     )
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
-        ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, kp, kp_limit, grid, lookups, False,
+        sx, sy, sz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_start, kp, kp_limit, grid, lookups,
+        False,
     )
-    n_t = theta_times(cx, cz, dx, dz, t_closest, jt, jt_limit, th_sigma, th_steps, t_axis,
-                      grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times, zones)
-    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, kp, kp_limit, t_turn, ph1_steps, ph2_start,
-                    ph2_steps, ph_jump, grid.phi_tan2, grid.phi_nappe, t_final, slack, times, zones)
+    n_t = theta_times(cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, th_sigma, th_steps,
+                      t_axis, grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times,
+                      zones)
+    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, ph1_steps,
+                    ph2_start, ph2_steps, ph_jump, grid.phi_tan2, grid.phi_nappe, t_final, slack,
+                    times, zones)
     zones[THETA, 0] = jt
     zones[PHI, 0] = kp
     times[THETA, n_t + 1] = np.inf
@@ -156,10 +164,10 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
 
     column = jt * n_phi + kp
     column_in = jt < n_theta and 0 <= kp < n_phi
-    falling = t_closest > 0.0
+    falling = t_closest > t_start
     done_t = 0
     done_p = 0
-    t_now = 0.0  # when the current column was entered
+    t_now = t_start  # when the current column was entered
     at_crossing = True  # the current cell was entered at t_now, not through a sphere
     inward = False  # ... or through a sphere inwards (then leaving outwards is the dip)
     # One pass per angular crossing, plus the last stretch to t_final. Each
@@ -223,24 +231,23 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
             if stays:
                 free[column * n_rho + i] = 1
         if t_next >= t_final:
-            if not (is_hit and t_max0 <= _sphere_time(t_closest0, h2_0, rho_sq[n_rho], True)):
+            if not (is_hit and t_max <= _sphere_time(t_closest, h2, rho_sq[n_rho], True)):
                 return -1  # no hit, or the ray leaves the region before its end
             # The trace stops at t_max by comparing its sphere crossing times
-            # (from the sensor, not the gap's exit) with it, which rho^2 at
-            # t_max only approximates: on a sphere, follow the times. A sphere
-            # the trace does not cross before t_max leaves it in the cell
-            # before; one it does cross starts a sliver, which ends the trace
-            # without a hit.
-            if crossed >= 0 and _sphere_time(t_closest0, h2_0, rho_sq[crossed],
-                                             crossed_out) >= t_max0:
+            # with it, which rho^2 at t_max only approximates: on a sphere,
+            # follow the times. A sphere the trace does not cross before t_max
+            # leaves it in the cell before; one it does cross starts a sliver,
+            # which ends the trace without a hit.
+            if crossed >= 0 and _sphere_time(t_closest, h2, rho_sq[crossed],
+                                             crossed_out) >= t_max:
                 before = crossed - 1 if crossed_out else crossed
                 if left_flagged and 0 <= before < n_rho:
                     return column * n_rho + before
                 return -1
             outward = not falling
             ahead = i + 1 if outward else i
-            if 0 <= ahead <= n_rho and _sphere_time(t_closest0, h2_0, rho_sq[ahead],
-                                                    outward) < t_max0:
+            if 0 <= ahead <= n_rho and _sphere_time(t_closest, h2, rho_sq[ahead],
+                                                    outward) < t_max:
                 return -1
             if cell_in and stays:
                 return column * n_rho + i
