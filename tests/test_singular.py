@@ -144,6 +144,39 @@ def test_origin_on_a_half_plane_and_a_ray_nearly_inside_it(edge, angle):
                                  f"{message}")
 
 
+@pytest.mark.parametrize("name", ["log_full", "paper_dm", "thin_shell", "uniform_rho_min_zero"])
+def test_a_ray_from_the_y_axis_lying_in_a_half_plane_keeps_its_directions_zone(name):
+    """The eye exactly on the y axis and the direction's azimuth a theta edge (as
+    rounded): the line lies in the half-plane, every point past the eye has the
+    direction's azimuth, and the lookup puts that in the cell above the edge.
+
+    Written with the line's closest point, the sign of the sweep was rounding
+    (~1e-19), and the trace took the ray to sweep to the half-plane and never
+    reach it: the cell below, all along (10 of these 80 rays). The oracle's
+    extended precision puts such a ray's points on either side, so it is not
+    the reference here; the package's own lookup is.
+    """
+    grid = GRIDS[name]()
+    rng = np.random.default_rng(7)
+    edges = grid.theta_edges
+    origins, directions = [], []
+    for _ in range(20):
+        theta = edges[rng.integers(1, edges.size - 1)]
+        elevation = rng.uniform(-1.4, 1.4)
+        directions.append(rng.uniform(0.5, 2.0) * np.array(
+            [np.cos(elevation) * np.sin(theta), np.sin(elevation),
+             np.cos(elevation) * np.cos(theta)]))
+        origins.append([0.0, rng.uniform(-1.5, 1.5) * grid.rho_max, 0.0])
+    origins, directions = np.array(origins), np.array(directions)
+    unit = directions / np.linalg.norm(directions, axis=1)[:, None]
+    zone = np.searchsorted(edges, np.arctan2(unit[:, 0], unit[:, 2]), side="right") - 1
+    for parallel in (False, True):
+        traces = lt.trace_many(grid, origins, directions, parallel=parallel)
+        for row in range(len(origins)):
+            np.testing.assert_array_equal(traces[row].cells[:, 1], zone[row])
+    assert sum(len(traces[row].cells) > 0 for row in range(len(origins))) > 10
+
+
 def _after(trace, t_from):
     cells, t_enter, t_exit = trace
     keep = t_exit > t_from

@@ -158,17 +158,21 @@ def line_geometry(ox, oy, oz, dx, dy, dz):
 
 
 @jit(inline="always")
-def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, theta_edges, theta_full,
-               lookups, reuse):
+def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, on_axis, jt, jt_limit, theta_edges,
+               theta_full, lookups, reuse):
     """Phase 1 for theta: one monotone sweep, or a jump where the line meets the y axis.
 
     ``c`` is the line's closest point to the centre and ``t_closest`` its
     time (``line_geometry``), which sets the clock of every time here. The ray
     starts at time ``t_start`` (0 for a trace), at the point whose x and z
     are ``ox``, ``oz``; ``jt`` and ``jt_limit`` are the zones of that point
-    and of the direction (the limit as t -> inf). Returns
-    the start zone, the sweep sign, the number of half-planes crossed and
-    ``t_axis``, the time of the jump (inf when none).
+    and of the direction (the limit as t -> inf). ``on_axis``: the clock's
+    origin lies on the y axis, so the line meets the axis there, at t = 0,
+    and every point after it has the direction's azimuth (written with ``c``,
+    the sweep's sign would be rounding, and a line lying in a half-plane
+    would be taken to sweep to it and never reach it). Returns the start
+    zone, the sweep sign, the number of half-planes crossed and ``t_axis``,
+    the time of the jump (inf when none).
     The ambiguous case of a zone wider than half a turn is decided once and
     kept in ``lookups[4]`` (read back when ``reuse``).
     """
@@ -182,6 +186,8 @@ def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, theta_e
     t_axis = inf
     if dx == 0.0 and dz == 0.0:  # not b2 == 0: b2 underflows for |d_x|, |d_z| < 1e-154
         pass  # parallel to the y axis: theta never changes
+    elif on_axis:
+        jt = jt_limit
     elif sweep_sign == 0.0:
         meets_axis = t_closest - (cx * dx + cz * dz) / (dx * dx + dz * dz)
         if meets_axis > t_start:
@@ -494,8 +500,8 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
         lookups[2] = jt
         lookups[3] = jt_limit
     jt, th_sigma, th_steps, t_axis = theta_plan(
-        ox, oz, cx, cz, dx, dz, t_closest, 0.0, jt, jt_limit, theta_edges, theta_full, lookups,
-        reuse,
+        ox, oz, cx, cz, dx, dz, t_closest, 0.0, ox == 0.0 and oz == 0.0, jt, jt_limit,
+        theta_edges, theta_full, lookups, reuse,
     )
     if reuse:
         kp_limit = lookups[5]
