@@ -120,10 +120,12 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
             # start on the last one up to ``skip`` crossed before the end.
             i = min(skip, _last_at_or_below((t_max - t_closest) ** 2 + h2, rho_sq))
             before_end = t_max * (1.0 - 1e-9)
-            while i > 0 and _sphere_time(t_closest, h2, rho_sq[i], True) >= before_end:
+            while i > 0:
+                t_sphere = _sphere_time(t_closest, h2, rho_sq[i], True)
+                if t_sphere < before_end:
+                    t_start = t_sphere
+                    break
                 i -= 1
-            if i > 0:
-                t_start = _sphere_time(t_closest, h2, rho_sq[i], True)
         sx += t_start * dx
         sy += t_start * dy
         sz += t_start * dz
