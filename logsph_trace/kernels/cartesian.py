@@ -52,6 +52,12 @@ def _box_span_of(origins, directions, row, low, size, shape):
             min(far_x, far_y, far_z))
 
 
+@jit(inline="always")
+def box_max_segments(shape):
+    """Most voxels one ray can cross in a box of ``shape`` (``trace_box_ray``'s loop bound)."""
+    return shape[0] + shape[1] + shape[2]
+
+
 @jit
 def trace_box_ray(origins, directions, row, low, size, shape, cells, t_enter, t_exit, start):
     """Trace ray ``row`` (unit direction) through the box, writing its voxels from
@@ -115,7 +121,7 @@ def box_bound(origins, directions, row, low, size, shape):
     steps = (1 + _axis_steps(ox, dx, t_in, t_out, low[0], size[0], shape[0])
              + _axis_steps(oy, dy, t_in, t_out, low[1], size[1], shape[1])
              + _axis_steps(oz, dz, t_in, t_out, low[2], size[2], shape[2]))
-    return min(steps, shape[0] + shape[1] + shape[2])
+    return min(steps, box_max_segments(shape))
 
 
 @jit(inline="always")
@@ -130,7 +136,7 @@ def _axis_steps(origin, direction, t_in, t_out, low, width, n):
 def box_span(first, last, origins, directions, low, size, shape, cells, t_enter, t_exit, offsets,
              used, limit):
     """One thread: rays first..last-1 in order, appending (``exact.trace_span``'s contract)."""
-    worst = shape[0] + shape[1] + shape[2]
+    worst = box_max_segments(shape)
     for row in range(first, last):
         if limit - used < worst:
             return used, row
@@ -152,7 +158,7 @@ def box_span_back(first, last, origins, directions, low, size, shape, block_cell
                   block_exit, cells, t_enter, t_exit, offsets, top, floor):
     """One thread: rays first..last-1 placed down from ``top`` in blocks
     (``exact.trace_span_back``'s contract)."""
-    worst = shape[0] + shape[1] + shape[2]
+    worst = box_max_segments(shape)
     rays = block_enter.shape[0] // worst
     end = last
     while end > first:
@@ -173,7 +179,7 @@ def box_span_back(first, last, origins, directions, low, size, shape, block_cell
 def box_halves(split, anchor, limit, origins, directions, low, size, shape, cells, t_enter,
                t_exit, offsets):
     """Two threads meeting at ``anchor`` (``exact.trace_halves``'s contract)."""
-    worst = shape[0] + shape[1] + shape[2]
+    worst = box_max_segments(shape)
     ends = np.empty(2, dtype=np.int64)
     reached = np.empty(2, dtype=np.int64)
     for half in prange(2):
@@ -198,7 +204,7 @@ def box_ordered(first_row, last_row, chunk_rays, workers, origins, directions, l
                 fresh_end):
     """Chunks taken in order and placed by the threads that traced them
     (``exact.trace_ordered``'s contract)."""
-    room = chunk_rays * (shape[0] + shape[1] + shape[2])
+    room = chunk_rays * box_max_segments(shape)
     n_chunks, counts, starts, reached, counter, fresh = chain(first_row, last_row, chunk_rays,
                                                               used, fresh_end)
     for worker in prange(workers):
