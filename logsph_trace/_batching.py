@@ -77,8 +77,9 @@ _phases = threading.local()
 def phase_times():
     """Yield a dict of the seconds each batch phase took in this block (a benchmark hook).
 
-    The batch phases are "trace", "allocate", "gather", "shrink" and
-    "other" (Python between the kernels); a cone's are "bound", "trace" and
+    The batch phases are "bound" (the parallel paths' sampled bounds),
+    "allocate", "trace", "shrink" and "other" (Python between the kernels);
+    a cone's are "bound", "trace" and
     "aggregate", an integration's "prepare", "mark" and "apply". Only this
     thread's calls are counted.
     """
