@@ -147,7 +147,8 @@ def _check_ends(face, offsets, scan=0):
         got = lt.OccupancyGrid(grid).integrate(points, sensor, max_range=max_range)
         np.testing.assert_array_equal(got.log_odds,
                                       _reference_log_odds(grid, points, sensor, max_range))
-    return _flags(grid, sensor, points)[3:]
+    counts = _flags(grid, sensor, points)[3:]
+    return counts[0] > 0.1 * points.shape[0] and counts[1] > 0.02 * points.shape[0]
 
 
 @pytest.mark.parametrize("face", ["rho", "theta", "phi"])
@@ -156,8 +157,7 @@ def test_rays_ending_beside_a_cell_face(face, coherent_from_1000_rays):
     # clear of its cell's faces: end points 1e-15 ... 1e-3 beside a face, on
     # either side, must come out as the walk has them.
     beside = np.array(OFFSETS[1:])
-    counts = _check_ends(face, np.r_[beside, -beside])
-    assert counts[0] > 0.1 * 20000 and counts[1] > 0.02 * 20000
+    assert _check_ends(face, np.r_[beside, -beside])  # rays were left unwalked
 
 
 @pytest.mark.parametrize("scan", range(len(SCANS)))
@@ -171,9 +171,11 @@ def test_rays_ending_on_a_cell_face(face, scan, coherent, monkeypatch):
     # to decide whether the end cell was a hit: 13 of the first 30 cases
     # failed, by 1-145 cells. From the y axis, a ray ending on a theta face
     # lies in it: the trace once took it to sweep to the face and never
-    # reach it (see test_exact), and the walk to start on it.
+    # reach it (see test_singular), and the walk to start on it.
     monkeypatch.setattr(occ, "COHERENT_MIN_RAYS", 1000 if coherent else 10**9)
-    _check_ends(face, np.array([0.0]), scan)
+    unwalked = _check_ends(face, np.array([0.0]), scan)
+    if scan == 0 or not coherent:  # the first scan leaves rays unwalked, the plain walk none
+        assert unwalked == coherent
 
 
 def test_the_real_frame_off_the_centre_equals_walking_every_ray(monkeypatch):
