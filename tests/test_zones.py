@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 import logsph_trace as lt
-from logsph_trace.kernels.locate import phi_zone, phi_zone_near, theta_zone, theta_zone_near
+from logsph_trace.kernels.locate import (
+    phi_zone,
+    phi_zone_near,
+    rough_atan2,
+    theta_zone,
+    theta_zone_near,
+)
 
 
 @numba.njit
@@ -64,3 +70,28 @@ def test_a_guessed_zone_is_the_looked_up_zone(grid):
             for row in range(0, points.shape[0], 7):
                 again = _both(points[row:row + 1], own[row:row + 1], grid.kernel_args())
                 assert again[0, 0, column + 1] == again[0, 0, column]
+
+
+@numba.njit
+def _rough(points):
+    out = np.empty(points.shape[0])
+    for row in range(points.shape[0]):
+        out[row] = rough_atan2(points[row, 0], points[row, 1])
+    return out
+
+
+def test_the_rough_azimuth_is_within_its_stated_error():
+    """The second guess's angle (``rough_atan2``) is within 2e-6 rad of atan2 in
+    every octant, on the axes and diagonals, and for tiny and huge components."""
+    rng = np.random.default_rng(61)
+    points = np.concatenate([
+        rng.normal(size=(200_000, 2)),
+        rng.normal(size=(1000, 2)) * np.array([[1e-300, 1e300]]),
+        [[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0], [1.0, 1.0], [-1.0, -1.0],
+         [1.0, -1.0], [-1.0, 1.0], [0.0, -0.0], [1e-310, -2.0], [-3.0, 1e-320]],
+    ])
+    points = points[(points[:, 0] != 0.0) | (points[:, 1] != 0.0)]
+    exact = np.arctan2(points[:, 0], points[:, 1])
+    error = np.abs(_rough(points) - exact)
+    error = np.minimum(error, 2 * np.pi - error)  # -pi and pi are the same direction
+    assert error.max() < 2e-6

@@ -14,8 +14,9 @@ monotone with at most one turning point*:
   *linear* in t (``p t + q`` below), so phi rises then falls (or the reverse)
   with one turning point ``-q / p``; a line through the origin jumps there.
 
-On each monotone branch the zone at both ends is found by the same lookup the
-public ``cell_of`` uses, so the *number* of crossings of every family is fixed
+On each monotone branch the zone at both ends is the one the public ``cell_of``
+gives (``theta_zone_near`` and ``phi_zone_near``: a cheap guess confirmed
+against the edges, or that lookup), so the *number* of crossings of every family is fixed
 before stepping.  Crossing *times* come from closed forms (Eq. 9a, 9c and the
 exact cone quadratic of docs/geometry.md) and are clamped into the branch, so
 rounding can move a crossing by an ulp or two but can never drop one or add
@@ -39,10 +40,9 @@ from .locate import (
     TWO_PI,
     azimuth,
     locate,
-    phi_zone,
     phi_zone_near,
     rho_zone,
-    theta_zone,
+    theta_zone_near,
 )
 from .ordered import advance, buffer_of, chain, post, rows_of, take
 from .stream import stream_segments
@@ -459,10 +459,8 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
     rho_sq = grid.rho_sq
     rho_kind = grid.rho_kind
     theta_edges = grid.theta_edges
-    theta_kind = grid.theta_kind
     theta_full = grid.theta_full
     phi_edges = grid.phi_edges
-    phi_kind = grid.phi_kind
     n_rho = rho_edges.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
     n_phi = phi_edges.shape[0] - 1
@@ -495,8 +493,8 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
         jt = lookups[2]
         jt_limit = lookups[3]
     else:
-        jt = theta_zone(ox, oz, theta_edges, theta_kind)
-        jt_limit = theta_zone(dx, dz, theta_edges, theta_kind)
+        jt = theta_zone_near(ox, oz, -1, grid)
+        jt_limit = theta_zone_near(dx, dz, -1, grid)
         lookups[2] = jt
         lookups[3] = jt_limit
     jt, th_sigma, th_steps, t_axis = theta_plan(
@@ -507,8 +505,8 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
         kp_limit = lookups[5]
         kp = lookups[6]
     else:
-        kp_limit = phi_zone(dx, dy, dz, phi_edges, phi_kind)
-        kp = phi_zone(ox, oy, oz, phi_edges, phi_kind)
+        kp_limit = phi_zone_near(dx, dy, dz, -1, grid)
+        kp = phi_zone_near(ox, oy, oz, -1, grid)
         lookups[5] = kp_limit
         lookups[6] = kp
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
