@@ -367,6 +367,47 @@ def _reverse(row, first, count):
         row[first + count - 1 - k] = a
 
 
+# Cones timed at a time by ``_branch_times``: a branch's crossings past the
+# ray's exit are never used, so they are computed in blocks and the blocks
+# stop at the first crossing past it.
+CONE_BLOCK = 8
+
+
+@jit(inline="always")
+def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_start, phi_tan2,
+                  phi_nappe, t_closest, cy, dy, cab, ca2, b2, t_final, slack, times, zones):
+    """The ``steps`` cone crossings of one monotone branch of phi, from ``zone`` in
+    direction ``sigma``, clamped into ``[t_prev, t_high]``, appended to row
+    ``PHI`` after its first ``n_p``; stops at the first past ``t_final``.
+
+    ``_cone_times`` times the cones ``CONE_BLOCK`` at a time, in the order
+    the ray meets them (a descending block is reversed in place). Clamped
+    crossings never decrease, so none after the first one past ``t_final``
+    is used, and the blocks after it are not computed. Returns (``n_p``,
+    ``t_prev``, ``zone``, whether a crossing past ``t_final`` ended the list).
+    """
+    row = times[PHI]
+    done = False
+    step = 0
+    while step < steps and not done:
+        count = min(CONE_BLOCK, steps - step)
+        _cone_times(zone + 1 if sigma > 0 else zone - count + 1, count, phi_tan2, phi_nappe, row,
+                    n_p + 1, t_closest, cy, dy, cab, ca2, b2, first_branch, branch_start, slack)
+        if sigma < 0:
+            _reverse(row, n_p + 1, count)
+        for _ in range(count):
+            t_prev = _clamp(row[n_p + 1], t_prev, t_high, slack, step == steps - 1)
+            if t_prev > t_final:
+                done = True
+                break
+            zone += sigma
+            times[PHI, n_p + 1] = t_prev
+            zones[PHI, n_p + 1] = zone
+            n_p += 1
+            step += 1
+    return n_p, t_prev, zone, done
+
+
 @jit(inline="always")
 def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, ph1_steps,
               ph2_start, ph2_steps, ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones):
@@ -375,25 +416,10 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
     b2 = dx * dx + dz * dz
     cab = cx * dx + cz * dz
     ca2 = cx * cx + cz * cz
-    n_p = 0
-    zone = kp
-    t_prev = t_start
-    done = False  # a crossing past t_final ends the list
-    sigma = 1 if ph2_start > kp else -1
-    row = times[PHI]
-    _cone_times(kp + 1 if sigma > 0 else kp - ph1_steps + 1, ph1_steps, phi_tan2, phi_nappe, row,
-                1, t_closest, cy, dy, cab, ca2, b2, True, t_start, slack)
-    if sigma < 0:
-        _reverse(row, 1, ph1_steps)
-    for step in range(ph1_steps):
-        t_prev = _clamp(row[n_p + 1], t_prev, t_turn, slack, step == ph1_steps - 1)
-        if t_prev > t_final:
-            done = True
-            break
-        zone += sigma
-        times[PHI, n_p + 1] = t_prev
-        zones[PHI, n_p + 1] = zone
-        n_p += 1
+    n_p, t_prev, zone, done = _branch_times(
+        kp, 1 if ph2_start > kp else -1, ph1_steps, t_start, t_turn, 0, True, t_start, phi_tan2,
+        phi_nappe, t_closest, cy, dy, cab, ca2, b2, t_final, slack, times, zones,
+    )
     if ph_jump == 1:
         t_prev = _clamp(t_turn, t_prev, inf, slack, False)
         if t_prev > t_final:
@@ -404,21 +430,11 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
             zones[PHI, n_p + 1] = zone
             n_p += 1
     if not done:
-        sigma = 1 if kp_limit > zone else -1
-        branch_start = t_turn if t_turn < inf else t_start
-        _cone_times(zone + 1 if sigma > 0 else zone - ph2_steps + 1, ph2_steps, phi_tan2,
-                    phi_nappe, row, n_p + 1, t_closest, cy, dy, cab, ca2, b2, False, branch_start,
-                    slack)
-        if sigma < 0:
-            _reverse(row, n_p + 1, ph2_steps)
-        for step in range(ph2_steps):
-            t_prev = _clamp(row[n_p + 1], t_prev, inf, slack, step == ph2_steps - 1)
-            if t_prev > t_final:
-                break
-            zone += sigma
-            times[PHI, n_p + 1] = t_prev
-            zones[PHI, n_p + 1] = zone
-            n_p += 1
+        n_p, _, _, _ = _branch_times(
+            zone, 1 if kp_limit > zone else -1, ph2_steps, t_prev, inf, n_p, False,
+            t_turn if t_turn < inf else t_start, phi_tan2, phi_nappe, t_closest, cy, dy, cab, ca2,
+            b2, t_final, slack, times, zones,
+        )
     return n_p
 
 
