@@ -15,7 +15,7 @@ monotone with at most one turning point*:
   with one turning point ``-q / p``; a line through the origin jumps there.
 
 On each monotone branch the zone at both ends is the one the public ``cell_of``
-gives (``theta_zone_near`` and ``phi_zone_near``: a cheap guess confirmed
+gives (``theta_zone_rough`` and ``phi_zone_rough``: a cheap guess confirmed
 against the edges, or that lookup), so the *number* of crossings of every family is fixed
 before stepping.  Crossing *times* come from closed forms (Eq. 9a, 9c and the
 exact cone quadratic of docs/geometry.md) and are clamped into the branch, so
@@ -41,8 +41,9 @@ from .locate import (
     azimuth,
     locate,
     phi_zone_near,
+    phi_zone_rough,
     rho_zone,
-    theta_zone_near,
+    theta_zone_rough,
 )
 from .ordered import advance, buffer_of, chain, post, rows_of, take
 from .stream import stream_segments
@@ -509,8 +510,10 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
         jt = lookups[2]
         jt_limit = lookups[3]
     else:
-        jt = theta_zone_near(ox, oz, -1, grid)
-        jt_limit = theta_zone_near(dx, dz, -1, grid)
+        jt = theta_zone_rough(ox, oz, theta_edges, grid.theta_sin, grid.theta_cos,
+                              grid.theta_kind)
+        jt_limit = theta_zone_rough(dx, dz, theta_edges, grid.theta_sin, grid.theta_cos,
+                                    grid.theta_kind)
         lookups[2] = jt
         lookups[3] = jt_limit
     jt, th_sigma, th_steps, t_axis = theta_plan(
@@ -521,8 +524,9 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
         kp_limit = lookups[5]
         kp = lookups[6]
     else:
-        kp_limit = phi_zone_near(dx, dy, dz, -1, grid)
-        kp = phi_zone_near(ox, oy, oz, -1, grid)
+        kp_limit = phi_zone_rough(dx, dy, dz, phi_edges, grid.phi_sin, grid.phi_cos,
+                                  grid.phi_kind)
+        kp = phi_zone_rough(ox, oy, oz, phi_edges, grid.phi_sin, grid.phi_cos, grid.phi_kind)
         lookups[5] = kp_limit
         lookups[6] = kp
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
@@ -665,8 +669,10 @@ def bound_counts(origins, directions, grid, bounds):
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         lookups = np.empty(8, dtype=np.int64)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            # np.int64, not literals: Numba would compile trace_ray once more,
+            # specialised on them (about 3 s cold); trace_span passes its mode so too.
             bounds[row] = trace_ray(origins, directions, row, grid, np.inf, no_times, no_zones,
-                                    lookups, no_cells, no_t, no_t, 0, BOUND)
+                                    lookups, no_cells, no_t, no_t, np.int64(0), np.int64(BOUND))
 
 
 @jit
@@ -692,7 +698,7 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
         if limit - used < worst:
             return used, row
         used += trace_ray(origins, directions, row, grid, t_max[row], times, zones, lookups, cells,
-                          t_enter, t_exit, used, FULL)
+                          t_enter, t_exit, used, np.int64(FULL))
         offsets[row + 1] = used
     return used, last
 

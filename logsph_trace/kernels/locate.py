@@ -217,7 +217,7 @@ def phi_zone(x, y, z, phi_edges, phi_kind):
 INSIDE_MARGIN = 1e-12
 
 
-@jit(inline="always")
+@jit
 def rough_atan2(y, x):
     """atan2(y, x) to within 2e-6 rad, for a first guess only (x and y not both 0).
 
@@ -236,69 +236,90 @@ def rough_atan2(y, x):
     return -a if y < 0.0 else a
 
 
+@jit
+def _uniform_guess(angle, low, high, n):
+    """The zone of ``angle`` among ``n`` uniform zones from ``low`` to ``high``, by
+    arithmetic (may be off by one)."""
+    return int((angle - low) * (n / (high - low)))
+
+
+@jit
+def _inside_by_margin(u, v, sin_low, cos_low, sin_high, cos_high):
+    """Whether the direction (u, v) (u along the sines, v along the cosines) lies
+    between the edges (sin, cos) low and high by more than ``INSIDE_MARGIN``:
+    the sines of its angles to them, from the edges' own sines and cosines.
+    Then its zone by atan2 is the one between them as well."""
+    margin = INSIDE_MARGIN * (abs(u) + abs(v))
+    return (u * cos_low - v * sin_low > margin
+            and v * sin_high - u * cos_high > margin)
+
+
 @jit(inline="always")
-def _uniform_guess(angle, edges):
-    """The zone of ``angle`` among uniform ``edges``, by arithmetic (may be off by one)."""
+def _in_sector(x, z, zone, edges, sines, cosines):
+    """Whether (x, ., z) is inside azimuthal ``zone`` by more than ``INSIDE_MARGIN``
+    (``_inside_by_margin``): then it is in that zone by atan2 as well."""
+    return (0 <= zone < edges.shape[0] - 1 and edges[zone + 1] - edges[zone] < 3.0
+            and _inside_by_margin(x, z, sines[zone], cosines[zone], sines[zone + 1],
+                                  cosines[zone + 1]))
+
+
+@jit(inline="always")
+def _in_band(y, flat, zone, edges, sines, cosines):
+    """Whether a point at height ``y`` and distance ``flat`` (>= 0) from the y axis is
+    inside elevation ``zone`` by more than ``INSIDE_MARGIN`` (see ``_in_sector``)."""
+    return (0 <= zone < edges.shape[0] - 1
+            and _inside_by_margin(y, flat, sines[zone], cosines[zone], sines[zone + 1],
+                                  cosines[zone + 1]))
+
+
+@jit(inline="always")
+def theta_zone_rough(x, z, edges, sines, cosines, kind):
+    """``theta_zone`` of (x, z), from a guess where it can: on uniform edges the zone
+    of ``rough_atan2``'s angle, kept if the point is inside it by more than
+    ``INSIDE_MARGIN`` (``_in_sector``), so that it is its zone by atan2 too.
+    A third of the lookup's time. A point within the guess's error of an
+    edge, outside a partial range, or on other edges is looked up."""
     n = edges.shape[0] - 1
-    return int((angle - edges[0]) * (n / (edges[n] - edges[0])))
+    if kind == UNIFORM and (x != 0.0 or z != 0.0):
+        theta = rough_atan2(x, z)
+        guess = _uniform_guess(theta + TWO_PI if theta < edges[0] else theta, edges[0],
+                               edges[n], n)
+        if _in_sector(x, z, guess, edges, sines, cosines):
+            return guess
+    return theta_zone(x, z, edges, kind)
 
 
 @jit(inline="always")
-def _in_sector(x, z, zone, grid):
-    """Whether (x, ., z) is inside azimuthal ``zone`` by more than ``INSIDE_MARGIN``,
-    by the sines of its angles to the edges (from the edges' own sines and
-    cosines): then it is in that zone by atan2 as well."""
-    edges = grid.theta_edges
-    if not (0 <= zone < edges.shape[0] - 1 and edges[zone + 1] - edges[zone] < 3.0):
-        return False
-    margin = INSIDE_MARGIN * (abs(x) + abs(z))
-    return (x * grid.theta_cos[zone] - z * grid.theta_sin[zone] > margin
-            and z * grid.theta_sin[zone + 1] - x * grid.theta_cos[zone + 1] > margin)
-
-
-@jit(inline="always")
-def _in_band(y, flat, zone, grid):
-    """Whether a point at height ``y`` and distance ``flat`` from the y axis is inside
-    elevation ``zone`` by more than ``INSIDE_MARGIN`` (see ``_in_sector``)."""
-    if not 0 <= zone < grid.phi_edges.shape[0] - 1:
-        return False
-    margin = INSIDE_MARGIN * (abs(y) + flat)
-    return (y * grid.phi_cos[zone] - flat * grid.phi_sin[zone] > margin
-            and flat * grid.phi_sin[zone + 1] - y * grid.phi_cos[zone + 1] > margin)
+def phi_zone_rough(x, y, z, edges, sines, cosines, kind):
+    """``phi_zone`` of (x, y, z), from a guess where it can (see ``theta_zone_rough``)."""
+    n = edges.shape[0] - 1
+    flat = math.sqrt(x * x + z * z)
+    if kind == UNIFORM and (y != 0.0 or flat != 0.0):
+        guess = _uniform_guess(rough_atan2(y, flat), edges[0], edges[n], n)
+        if _in_band(y, flat, guess, edges, sines, cosines):
+            return guess
+    return phi_zone(x, y, z, edges, kind)
 
 
 @jit(inline="always")
 def theta_zone_near(x, z, guess, grid):
-    """``theta_zone`` of (x, z), trying zone ``guess`` (a neighbour's; -1: none) first.
+    """``theta_zone`` of (x, z), trying zone ``guess`` (a neighbour's) first.
 
     A zone the point is inside by more than ``INSIDE_MARGIN`` (``_in_sector``)
-    is its zone by atan2 too. On uniform edges the next guess is the zone of
-    ``rough_atan2``'s angle, checked the same way: a third of the lookup's
-    time. A point within that guess's error of an edge, outside a partial
-    range, or on other edges is looked up.
+    is its zone by atan2 too; any other point gets ``theta_zone_rough``.
     """
-    if _in_sector(x, z, guess, grid):
+    if _in_sector(x, z, guess, grid.theta_edges, grid.theta_sin, grid.theta_cos):
         return guess
-    edges = grid.theta_edges
-    if grid.theta_kind == UNIFORM and (x != 0.0 or z != 0.0):
-        theta = rough_atan2(x, z)
-        guess = _uniform_guess(theta + TWO_PI if theta < edges[0] else theta, edges)
-        if _in_sector(x, z, guess, grid):
-            return guess
-    return theta_zone(x, z, edges, grid.theta_kind)
+    return theta_zone_rough(x, z, grid.theta_edges, grid.theta_sin, grid.theta_cos,
+                            grid.theta_kind)
 
 
 @jit(inline="always")
 def phi_zone_near(x, y, z, guess, grid):
     """``phi_zone`` of (x, y, z), trying zone ``guess`` first (see ``theta_zone_near``)."""
-    flat = math.sqrt(x * x + z * z)
-    if _in_band(y, flat, guess, grid):
+    if _in_band(y, math.sqrt(x * x + z * z), guess, grid.phi_edges, grid.phi_sin, grid.phi_cos):
         return guess
-    if grid.phi_kind == UNIFORM and (y != 0.0 or flat != 0.0):
-        guess = _uniform_guess(rough_atan2(y, flat), grid.phi_edges)
-        if _in_band(y, flat, guess, grid):
-            return guess
-    return phi_zone(x, y, z, grid.phi_edges, grid.phi_kind)
+    return phi_zone_rough(x, y, z, grid.phi_edges, grid.phi_sin, grid.phi_cos, grid.phi_kind)
 
 
 @jit
