@@ -284,15 +284,18 @@ def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
 # so the output outgrows its room only when the sample is off by more than this.
 RESERVE_MARGIN = 1.25
 # The front thread copies each block of segments once more (out of its block
-# scratch, with non-temporal stores: ``stream.stream_segments``), so it gets
-# less than half of the bounds' sum. On the exact method, one thread, the
-# front half's rays cost 59.8 ms at a share of 0.465 against 61.6 ms for the
-# back half's (bench.run's 100,000 rays, pre-touched arrays). On 2 threads,
-# best of 12 calls in one run, fresh arrays / reused buffers: 0.455 73.1 /
-# 64.1-65.4 ms; 0.465 72.0 / 63.2-64.4; 0.475 70.7-71.6 / 63.7-64.0; 0.485
-# 72.0-72.6 / 64.9-65.8. Amanatides-Woo, memory-bound on two threads there,
-# ran the same from 0.42 to 0.48 before the stores were non-temporal.
-HALVES_FRONT_SHARE = 0.47
+# scratch, with non-temporal stores: ``stream.stream_segments``), and the back
+# thread takes the page faults of fresh output as it writes, so their shares
+# of the bounds' sum are tuned, by the arrays: fresh or held (reused, faulted
+# in already). trace_many on bench.run's 100,000 rays, 2 threads, best of 12
+# calls, alternated in one run (2026-11-24, after the zone lookups got
+# faster): fresh arrays 0.47 62.4-62.6 ms, 0.485 59.8-60.6, 0.50 61.1-61.4,
+# 0.515 62.4-62.6; held buffers 0.47 54.7-55.1, 0.485 55.8-56.6, 0.50 57.0.
+# (Before the lookups got faster, 0.465-0.475 was best for both.)
+# Amanatides-Woo, memory-bound on two threads there, ran the same from 0.42
+# to 0.48 before the stores were non-temporal.
+HALVES_FRONT_SHARE = 0.485
+HALVES_FRONT_SHARE_HELD = 0.47
 # Rays sampled for their bounds, plus one in 512; at most one in 16 (a ray's
 # set-up costs about a quarter of tracing it on bench.run's grid), but 64 at
 # least.
@@ -352,8 +355,12 @@ def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
     strata, bounds = _sampled_bounds(kernels, bound_inputs, n_rays)
     # The bounds up to each stratum's end, scaled to its rays, with the margin.
     mass = np.cumsum(bounds * (strata[1:] - strata[:-1])) * RESERVE_MARGIN
-    cut = min(max(int(np.searchsorted(mass, HALVES_FRONT_SHARE * mass[-1])), 1),
-              bounds.shape[0] - 1)
+    # The reservation is about the same wherever the cut falls (the room of
+    # both halves, plus a ray's worst at the anchor and the end).
+    held = None if buffers is None else buffers.segments()
+    reuse = held is not None and held[0].shape[0] >= int(mass[-1]) + 2 * worst + 1
+    share = HALVES_FRONT_SHARE_HELD if reuse else HALVES_FRONT_SHARE
+    cut = min(max(int(np.searchsorted(mass, share * mass[-1])), 1), bounds.shape[0] - 1)
     split = int(strata[cut])
     anchor = int(mass[cut - 1]) + worst
     length = anchor + int(mass[-1] - mass[cut - 1]) + worst
@@ -361,7 +368,6 @@ def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
         return None
     start = lap("bound", start)
     offsets = _ray_offsets(n_rays, buffers)
-    held = None if buffers is None else buffers.segments()
     if held is not None and held[0].shape[0] >= length:
         segments = held
     else:
