@@ -1,5 +1,7 @@
 """The bounded log-spherical partition of the paper's Eq. 1-3 (conventions: docs/geometry.md)."""
 
+import math
+
 import numpy as np
 
 from . import _validate as validate
@@ -7,6 +9,19 @@ from .kernels import locate as _locate
 from .trace import cuda_backend
 
 SPACINGS = ("log", "paper", "uniform")
+
+
+def _each(function, edges):
+    """``function`` (from ``math``) of every edge, one at a time, as float64.
+
+    The kernels' sines, cosines and squared tangents of the edges come from
+    the platform's libm rather than numpy's vectorised loops, whose results
+    change by an ulp between numpy releases (numpy 1.24's sin differs from
+    the correctly rounded value on most of the test grids' edges; its
+    tan(pi/4) is 1.0). A ray tangent to a cone in exact arithmetic then had
+    a short detour through the cell beyond it, or none, by numpy's version.
+    """
+    return np.array([function(edge) for edge in edges.tolist()], dtype=np.float64)
 _SPACING_KIND = {"log": _locate.LOG, "paper": _locate.PAPER, "uniform": _locate.UNIFORM}
 
 
@@ -264,8 +279,10 @@ class Grid:
             phi = self.phi_edges
             cached = _locate.GridArrays(
                 self.rho_edges, self.rho_edges**2, self.rho_kind,
-                theta, np.sin(theta), np.cos(theta), self.theta_kind, self.theta_full,
-                phi, np.tan(phi) ** 2, np.sign(phi), self.phi_kind, np.sin(phi), np.cos(phi),
+                theta, _each(math.sin, theta), _each(math.cos, theta), self.theta_kind,
+                self.theta_full,
+                phi, _each(math.tan, phi) ** 2, np.sign(phi), self.phi_kind, _each(math.sin, phi),
+                _each(math.cos, phi),
             )
             object.__setattr__(self, "_kernel_args", cached)
         return cached

@@ -41,11 +41,14 @@ def grid(request):
     return GRIDS[request.param]()
 
 
-def assert_matches_oracle(grid, origin, direction, result, rel=1e-9, scale=None):
-    """``scale`` (default rho_max): the size tolerances are relative to."""
+def assert_matches_oracle(grid, origin, direction, result, rel=1e-9, scale=None,
+                          rel_distances=None):
+    """``scale`` (default rho_max): the size tolerances are relative to;
+    ``rel_distances``: the distances' own tolerance (default ``rel``, see ``compare``)."""
     want = oracle_trace(origin, direction, grid.rho_edges, grid.theta_edges, grid.phi_edges)
     scale = grid.rho_max if scale is None else scale
-    message = compare((result.cells, result.t_enter, result.t_exit), want, scale, rel)
+    message = compare((result.cells, result.t_enter, result.t_exit), want, scale, rel,
+                      rel_distances)
     assert message is None, f"origin={list(origin)} direction={list(direction)}: {message}"
 
 

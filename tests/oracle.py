@@ -166,14 +166,15 @@ TANGENT_SLIVER = 2.0 * np.sqrt(np.finfo(np.float64).eps)
 UNRESOLVED_TANGENT = 4.0 * np.sqrt(np.finfo(np.float64).eps)
 
 
-def compare(got, want, scale, rel=1e-9):
+def compare(got, want, scale, rel=1e-9, rel_distances=None):
     """None when two traces agree (docs/geometry.md), else a message saying where they differ.
 
     Segments shorter than ``rel * scale`` are dropped on both sides; the rest must
-    have equal cells and distances within ``rel`` (relative to the distance, or to
-    ``scale`` for distances near zero).
+    have equal cells and distances within ``rel_distances`` (default ``rel``;
+    relative to the distance, or to ``scale`` for distances near zero).
     """
     tol = rel * scale
+    rel = rel if rel_distances is None else rel_distances
     got_cells, got_t0, got_t1 = normalise(*got, tol)
     want_cells, want_t0, want_t1 = normalise(*want, tol)
     if got_cells.shape != want_cells.shape or not np.array_equal(got_cells, want_cells):
