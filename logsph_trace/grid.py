@@ -9,10 +9,11 @@ from .kernels import locate as _locate
 from .trace import cuda_backend
 
 SPACINGS = ("log", "paper", "uniform")
+_SPACING_KIND = {"log": _locate.LOG, "paper": _locate.PAPER, "uniform": _locate.UNIFORM}
 
 
 def _each(function, edges):
-    """``function`` (from ``math``) of every edge, one at a time, as float64.
+    """Return ``function`` (from ``math``) of every edge, one at a time, as float64.
 
     The kernels' sines, cosines and squared tangents of the edges come from
     the platform's libm rather than numpy's vectorised loops, whose results
@@ -22,7 +23,6 @@ def _each(function, edges):
     a short detour through the cell beyond it, or none, by numpy's version.
     """
     return np.array([function(edge) for edge in edges.tolist()], dtype=np.float64)
-_SPACING_KIND = {"log": _locate.LOG, "paper": _locate.PAPER, "uniform": _locate.UNIFORM}
 
 
 def rho_edges_for(rho_min, rho_max, n_rho, spacing="log"):
