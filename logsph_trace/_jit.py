@@ -140,8 +140,11 @@ class Twins(NamedTuple):
         return self.parallel if parallel else self.serial
 
 
-def jit_twins(func):
+def jit_twins(func=None, runtime=True):
     """Compile one ``prange`` source twice, serially and with ``parallel=True``.
+
+    ``runtime``: whether the serial build keeps Numba's runtime (see ``jit``;
+    a ``prange`` body that allocates needs it).
 
     Numba's on-disk cache names its files after the function's qualified name,
     so the two builds of one function would overwrite each other's cache and a
@@ -149,10 +152,13 @@ def jit_twins(func):
     parallel build therefore gets its own copy of the function, named
     ``<name>_parallel``.
     """
-    twin = types.FunctionType(
-        func.__code__, func.__globals__, func.__name__ + "_parallel",
-        func.__defaults__, func.__closure__,
-    )
-    twin.__qualname__ = func.__qualname__ + "_parallel"
-    twin.__doc__ = func.__doc__
-    return Twins(jit(func, runtime=True), jit(twin, parallel=True))
+    def build(func):
+        twin = types.FunctionType(
+            func.__code__, func.__globals__, func.__name__ + "_parallel",
+            func.__defaults__, func.__closure__,
+        )
+        twin.__qualname__ = func.__qualname__ + "_parallel"
+        twin.__doc__ = func.__doc__
+        return Twins(jit(func, runtime=runtime), jit(twin, parallel=True))
+
+    return build if func is None else build(func)

@@ -179,8 +179,9 @@ def _rows_of_three(name, value, rows=None):
     return array
 
 
-# From this many rows on, finiteness is checked on all threads (``all_finite``);
-# below, numpy on one thread is quicker than waking the threads.
+# From this many rows on, finiteness is checked and rows' lengths are taken on
+# all threads (``all_finite``, ``row_norms``); below, one thread is quicker than
+# waking the threads (and the serial build of ``row_norms`` compiles faster).
 PARALLEL_CHECK_ROWS = 1 << 15
 
 
@@ -232,7 +233,8 @@ def row_norms(vectors):
     ~1e154 or below ~1e-154 are scaled by their largest component first.
     """
     norms = np.empty(vectors.shape[0])
-    _locate.row_norms(np.ascontiguousarray(vectors, dtype=np.float64), norms)
+    kernel = _locate.row_norms.pick(vectors.shape[0] >= PARALLEL_CHECK_ROWS)
+    kernel(np.ascontiguousarray(vectors, dtype=np.float64), norms)
     return norms
 
 
