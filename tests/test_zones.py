@@ -7,6 +7,7 @@ import pytest
 
 import logsph_trace as lt
 from logsph_trace.kernels.locate import (
+    cell_of_point,
     phi_zone,
     phi_zone_near,
     rough_atan2,
@@ -70,6 +71,31 @@ def test_a_guessed_zone_is_the_looked_up_zone(grid):
             for row in range(0, points.shape[0], 7):
                 again = _both(points[row:row + 1], own[row:row + 1], grid.kernel_args())
                 assert again[0, 0, column + 1] == again[0, 0, column]
+
+
+@numba.njit
+def _cells_by_lookup(points, grid):
+    """``cell_of_point`` (atan2 lookups) of every point."""
+    out = np.empty((points.shape[0], 3), dtype=np.int64)
+    for row in range(points.shape[0]):
+        out[row, 0], out[row, 1], out[row, 2] = cell_of_point(
+            points[row, 0], points[row, 1], points[row, 2], grid.rho_edges, grid.rho_kind,
+            grid.theta_edges, grid.theta_kind, grid.phi_edges, grid.phi_kind)
+    return out
+
+
+@pytest.mark.parametrize("grid", [
+    lt.Grid(0.3, 8.0, 64, 360, 180),
+    lt.Grid(0.5, 6.0, 20, 24, 12, theta_range=(-1.0, 2.5), phi_range=(-0.6, 1.1),
+            spacing="uniform"),
+    lt.Grid.from_edges([0.5, 1.0, 3.0], [0.0, 0.4, 1.1, 4.0], [-0.3, 0.2, 1.5]),
+])
+def test_cell_of_is_the_lookups_cell(grid):
+    """``Grid.cell_of`` (angular zones from a rough guess) gives ``cell_of_point``'s
+    cells on and beside every edge, on the seam and on the y axis."""
+    points = _points(np.random.default_rng(67), grid)
+    want = _cells_by_lookup(points, grid.kernel_args())
+    np.testing.assert_array_equal(grid.cell_of(points), want)
 
 
 @numba.njit

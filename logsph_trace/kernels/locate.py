@@ -342,9 +342,15 @@ def cell_of_point(x, y, z, rho_edges, rho_kind, theta_edges, theta_kind, phi_edg
     points per ray unpack the bundle once. Reading an array out of the bundle
     inside a loop costs a reference count each time (a tenth of bisect's time).
     """
-    i = rho_zone(x, y, z, rho_edges, rho_kind)
-    j = theta_zone(x, z, theta_edges, theta_kind)
-    k = phi_zone(x, y, z, phi_edges, phi_kind)
+    return _cell_of_zones(rho_zone(x, y, z, rho_edges, rho_kind),
+                          theta_zone(x, z, theta_edges, theta_kind),
+                          phi_zone(x, y, z, phi_edges, phi_kind),
+                          rho_edges, theta_edges, phi_edges)
+
+
+@jit(inline="always")
+def _cell_of_zones(i, j, k, rho_edges, theta_edges, phi_edges):
+    """The cell of zones (i, j, k), or (-1, -1, -1) when they lie outside the region."""
     inside = (0 <= i < rho_edges.shape[0] - 1 and j < theta_edges.shape[0] - 1
               and 0 <= k < phi_edges.shape[0] - 1)
     if not inside:
@@ -354,14 +360,22 @@ def cell_of_point(x, y, z, rho_edges, rho_kind, theta_edges, theta_kind, phi_edg
 
 @jit(runtime=True)
 def cells_of_points(points, grid):
-    """(M, 3) float64 points -> (M, 3) int32 cells, rows of -1 outside the region."""
+    """(M, 3) float64 points -> (M, 3) int32 cells, rows of -1 outside the region.
+
+    ``cell_of_point``'s cells, with the angular zones from a rough guess
+    confirmed against the edges (``theta_zone_rough``, ``phi_zone_rough``).
+    """
     rho_edges, rho_kind = grid.rho_edges, grid.rho_kind
-    theta_edges, theta_kind = grid.theta_edges, grid.theta_kind
-    phi_edges, phi_kind = grid.phi_edges, grid.phi_kind
+    theta_edges, theta_sin, theta_cos = grid.theta_edges, grid.theta_sin, grid.theta_cos
+    phi_edges, phi_sin, phi_cos = grid.phi_edges, grid.phi_sin, grid.phi_cos
+    theta_kind, phi_kind = grid.theta_kind, grid.phi_kind
     out = np.empty((points.shape[0], 3), dtype=np.int32)
     for row in range(points.shape[0]):
-        out[row, 0], out[row, 1], out[row, 2] = cell_of_point(
-            points[row, 0], points[row, 1], points[row, 2],
-            rho_edges, rho_kind, theta_edges, theta_kind, phi_edges, phi_kind,
+        x, y, z = points[row, 0], points[row, 1], points[row, 2]
+        out[row, 0], out[row, 1], out[row, 2] = _cell_of_zones(
+            rho_zone(x, y, z, rho_edges, rho_kind),
+            theta_zone_rough(x, z, theta_edges, theta_sin, theta_cos, theta_kind),
+            phi_zone_rough(x, y, z, phi_edges, phi_sin, phi_cos, phi_kind),
+            rho_edges, theta_edges, phi_edges,
         )
     return out
