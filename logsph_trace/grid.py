@@ -281,8 +281,8 @@ class Grid:
                 self.rho_edges, self.rho_edges**2, self.rho_kind,
                 theta, _each(math.sin, theta), _each(math.cos, theta), self.theta_kind,
                 self.theta_full,
-                phi, _each(math.tan, phi) ** 2, np.sign(phi), self.phi_kind, _each(math.sin, phi),
-                _each(math.cos, phi),
+                phi, _each(math.tan, phi) ** 2, np.sign(phi), self.phi_kind,
+                _each(math.sin, phi), _each(math.cos, phi),
             )
             object.__setattr__(self, "_kernel_args", cached)
         return cached

@@ -286,9 +286,8 @@ def theta_zone_rough(x, z, edges, sines, cosines, kind):
     edge, outside a partial range, or on other edges is looked up."""
     n = edges.shape[0] - 1
     if kind == UNIFORM and (x != 0.0 or z != 0.0):
-        theta = rough_atan2(x, z)
-        guess = _uniform_guess(theta + TWO_PI if theta < edges[0] else theta, edges[0],
-                               edges[n], n)
+        theta = wrap_theta(rough_atan2(x, z), edges[0])
+        guess = _uniform_guess(theta, edges[0], edges[n], n)
         if _in_sector(x, z, guess, edges, sines, cosines):
             return guess
     return theta_zone(x, z, edges, kind)
