@@ -26,12 +26,13 @@ output is exact, and the parts are joined at the end.
 """
 
 import math
+from pathlib import Path
 
 import numpy as np
 from numba import cuda
 
 from . import _validate as validate
-from ._jit import CACHE
+from ._jit import CACHE, cache_by_package
 from .kernels import cone as _cone
 from .kernels import exact, locate
 from .kernels import occupancy as _occupancy
@@ -44,7 +45,16 @@ MEMORY_SHARE = 0.5  # of the free device memory, what the scratch or one part's 
 SEGMENT_BYTES = 4 * 3 + 8 + 8  # a cell, t_enter and t_exit
 BIG = np.iinfo(np.int64).max  # "none yet" for an atomic min
 
-# Every kernel is cached on disk, as the CPU's are (``LOGSPH_TRACE_CACHE=0`` turns it off).
+# Every kernel is cached on disk, as the CPU's are (``LOGSPH_TRACE_CACHE=0`` turns it off),
+# and checked against all the package's sources as they are. numba-cuda caches
+# through a ``CacheImpl`` of its own; Numba's older built-in ``numba.cuda``
+# through Numba's, which ``_jit`` already extends.
+try:
+    from numba.cuda.core import caching as _cuda_caching
+except ImportError:
+    pass
+else:
+    cache_by_package(Path(__file__).parent, _cuda_caching.CacheImpl)
 kernel = cuda.jit(cache=CACHE)
 
 

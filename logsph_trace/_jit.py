@@ -6,11 +6,13 @@ for a ``prange`` kernel that only runs in parallel, and ``@jit_twins`` for a
 ``prange`` kernel that also runs on one thread.
 
 ``cache=True`` keeps the first call after install cheap: each kernel compiles
-once and is loaded from ``__pycache__`` afterwards. ``LOGSPH_TRACE_CACHE=0``
-in the environment turns the cache off (a read-only install, or a kernel
-being edited: Numba re-validates a cached kernel against its own file only,
-so a change in a function it calls from another file goes unseen until the
-cache is cleared). ``error_model="numpy"`` makes a float division by zero
+once and is loaded from ``__pycache__`` afterwards. Numba checks a cached
+kernel against its own file only, but a kernel inlines helpers and freezes
+constants from other files; after an edit or a ``git pull`` that changed only
+those, it would load the stale machine code. So the package's kernels are
+checked against all of its sources (:func:`cache_by_package`): any change to
+the package recompiles them. ``LOGSPH_TRACE_CACHE=0`` in the environment
+turns the cache off (a read-only install). ``error_model="numpy"`` makes a float division by zero
 return ``inf``/``nan`` as IEEE says instead of raising, which the root solvers
 rely on (a ray parallel to a plane has its crossing at infinity).
 ``fastmath`` stays off: it may reorder the tie rules and NaN checks the
@@ -29,6 +31,7 @@ up in use anyway, every parallel kernel runs under one lock
 """
 
 import ctypes
+import hashlib
 import os
 import sys
 import threading
@@ -37,6 +40,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numba
+from numba.core import caching
 
 
 def prefer_tbb():
@@ -97,6 +101,87 @@ class Guarded:
         return getattr(self.dispatcher, name)
 
 CACHE = os.environ.get("LOGSPH_TRACE_CACHE", "1").strip() != "0"
+
+# Package roots whose kernels are checked against all their sources, and the
+# digest of those sources (computed when the first kernel there is cached).
+_ROOTS = {}
+
+
+def _sources_digest(root):
+    """SHA-256 of every ``.py`` file under ``root``: its path and its bytes."""
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0")
+        digest.update(path.read_bytes() + b"\0")
+    return digest.hexdigest()
+
+
+class _PackageLocator(caching._CacheLocator):
+    """Numba's own cache locator for a function, with the package's sources in its stamp.
+
+    Numba stores a locator's source stamp in the cache index and throws the
+    cached code away when it differs. Its own locators stamp the function's
+    file only; this one adds the digest of every source file of the package
+    the function is defined in, and leaves where the cache lives (and
+    everything else) to the locator Numba would have picked from
+    ``impl._locator_classes`` (``impl``: the ``CacheImpl`` of Numba or of
+    numba-cuda, set per subclass by ``cache_by_package``).
+    """
+
+    impl = None
+
+    def __init__(self, base, digest):
+        self._base = base
+        self._digest = digest
+        self._py_file = base._py_file  # Numba names it in its can't-cache warning
+
+    def ensure_cache_path(self):
+        self._base.ensure_cache_path()
+
+    def get_cache_path(self):
+        return self._base.get_cache_path()
+
+    def get_source_stamp(self):
+        return (self._base.get_source_stamp(), self._digest)
+
+    def get_disambiguator(self):
+        return self._base.get_disambiguator()
+
+    @classmethod
+    def from_function(cls, py_func, py_file):
+        path = Path(os.path.realpath(py_file))
+        root = next((root for root in _ROOTS if root in path.parents), None)
+        if root is None:
+            return None  # not ours: Numba's next locator takes it
+        for other in cls.impl._locator_classes:
+            if issubclass(other, _PackageLocator):
+                continue
+            base = other.from_function(py_func, py_file)
+            if base is not None:
+                if _ROOTS[root] is None:
+                    _ROOTS[root] = _sources_digest(root)
+                return cls(base, _ROOTS[root])
+        return None
+
+
+def cache_by_package(root, impl=None):
+    """Check the cached kernels defined under ``root`` against all of its ``.py`` files.
+
+    ``impl``: the ``CacheImpl`` whose locators to extend, Numba's by default
+    (numba-cuda has its own). Called for this package on import; a test
+    registers a package of its own. Has no effect where
+    ``NUMBA_CACHE_LOCATOR_CLASSES`` names the locators.
+    """
+    if impl is None:
+        impl = getattr(caching, "CacheImpl", None) or caching._CacheImpl  # numba 0.59: _CacheImpl
+    _ROOTS.setdefault(Path(os.path.realpath(root)), None)
+    locators = impl._locator_classes
+    if not any(issubclass(other, _PackageLocator) for other in locators):
+        locators.insert(0, type("_PackageLocator", (_PackageLocator,),
+                                     {"impl": impl, "__module__": __name__}))
+
+
+cache_by_package(Path(__file__).parent)
 _OPTIONS = dict(cache=CACHE, nogil=True, error_model="numpy")
 
 

@@ -95,6 +95,82 @@ def test_the_cache_switch_turns_numba_caching_off():
         assert out.split() == want.split(), out
 
 
+
+STALE_HELPER = """
+from logsph_trace._jit import jit
+VALUE = {value}
+@jit
+def value():
+    return VALUE
+"""
+
+STALE_CALLER = """
+from logsph_trace._jit import jit
+from .helper import value
+@jit
+def read():
+    return value()
+"""
+
+
+def test_a_cached_kernel_recompiles_when_a_helper_in_another_file_changes(tmp_path):
+    """Numba alone checks a cached kernel against its own file, so ``read`` would
+    keep returning the old ``VALUE`` it inlined from ``helper.py``; the package's
+    locator checks it against every source file of its package."""
+    package = tmp_path / "pkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "main.py").write_text(STALE_CALLER)
+    probe = ("import logsph_trace._jit as j; j.cache_by_package('pkg'); "
+             "from pkg.main import read; from pkg.helper import value; "
+             "print(read(), value(), read.stats.cache_hits.get(read.signatures[0], 0), "
+             "type(read._cache._impl.locator).__name__)")
+    env = dict(os.environ, LOGSPH_TRACE_CACHE="1", PYTHONDONTWRITEBYTECODE="1")
+
+    def run():
+        return subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, env=env, check=True,
+                              capture_output=True, text=True, timeout=300).stdout.split()
+
+    (package / "helper.py").write_text(STALE_HELPER.format(value=1))
+    assert run() == ["1", "1", "0", "_PackageLocator"]
+    assert run() == ["1", "1", "1", "_PackageLocator"]  # the cache still serves
+    (package / "helper.py").write_text(STALE_HELPER.format(value=2))
+    assert run() == ["2", "2", "0", "_PackageLocator"]
+    assert run() == ["2", "2", "1", "_PackageLocator"]
+
+
+def test_the_package_kernels_are_checked_against_all_its_sources():
+    from pathlib import Path
+
+    from logsph_trace import _jit
+    from logsph_trace.kernels import exact
+
+    if not _jit.CACHE:
+        pytest.skip("LOGSPH_TRACE_CACHE=0: nothing is cached")
+    locator = exact.trace_ray._cache._impl.locator
+    assert isinstance(locator, _jit._PackageLocator)
+    assert locator.get_source_stamp()[1] == _jit._sources_digest(Path(_jit.__file__).parent)
+    assert locator.get_cache_path() == str(Path(exact.__file__).parent / "__pycache__")
+
+
+def test_the_gpu_kernels_are_checked_against_all_the_package_sources():
+    """Whether ``numba.cuda`` is numba-cuda (its own ``CacheImpl``) or Numba's
+    built-in one, the CUDA kernels' cache is stamped like the CPU's."""
+    from pathlib import Path
+
+    from logsph_trace import _jit
+
+    if not _jit.CACHE:
+        pytest.skip("LOGSPH_TRACE_CACHE=0: nothing is cached")
+    cuda_module = pytest.importorskip("logsph_trace._cuda")
+    kernels = [value for value in vars(cuda_module).values() if hasattr(value, "_cache")]
+    assert len(kernels) > 10
+    digest = _jit._sources_digest(Path(_jit.__file__).parent)
+    for kernel in kernels:
+        locator = kernel._cache._impl.locator
+        assert isinstance(locator, _jit._PackageLocator), kernel
+        assert locator.get_source_stamp()[1] == digest
+
 def test_serial_kernels_borrow_their_arrays():
     """Serial kernels run without Numba's runtime, so a call counts no references
     (``_jit.jit``); only those that allocate, sort or return an array keep it."""
