@@ -66,8 +66,16 @@ def _plane_time(t_closest, cx, cz, dx, dz, edge_sin, edge_cos):
 
 
 @jit
-def _clamp(t_candidate, t_low, t_high, slack, last):
-    """Keep a counted crossing inside its branch ``[t_low, t_high]``.
+def _clamp(t_candidate, t_run, t_low, t_high, slack, last):
+    """Keep a counted crossing inside its branch: after ``t_low``, at most ``t_high``.
+
+    ``t_low`` is the crossing kept before it (or the branch's start) and
+    ``t_run`` the latest candidate so far, or that start (a running maximum:
+    clamping each crossing to the one kept before it is clamping it to the
+    latest before it). Returns the new ``t_run``, the crossing kept and the
+    ``t_low`` of the next. Only ``t_run``, a compare and a select, carries
+    from one crossing to the next; the kept value, which the clamp to
+    ``t_high`` and the test below would add to it, hangs off it.
 
     A crossing a hair before ``t_low`` is a simultaneous one rounded the other
     way: it happens now. One clearly in the past (by more than ``slack``) is
@@ -82,9 +90,9 @@ def _clamp(t_candidate, t_low, t_high, slack, last):
     order, so only the ``last`` of a branch can be at infinity. NaN: now.
     """
     at_infinity = last and t_candidate < t_low - 1e9 * slack  # slack is 1e-9 of the scene
-    t_kept = t_high if at_infinity else t_candidate
-    t_kept = t_kept if t_kept >= t_low else t_low  # also NaN -> now
-    return t_kept if t_kept <= t_high else t_high
+    t_run = t_candidate if t_candidate >= t_run else t_run  # also NaN -> now
+    t_fit = t_run if t_run <= t_high else t_high
+    return t_run, (t_high if at_infinity else t_fit), t_fit
 
 
 @jit
@@ -284,12 +292,13 @@ def theta_times(cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, th_sigma, th_s
         zones[THETA, 1] = jt_limit
         n_t = 1
     zone = jt
-    t_prev = t_start
+    t_run = t_start
+    t_low = t_start
     for step in range(th_steps):
         edge = _theta_edge_ahead(zone, th_sigma, n_theta, theta_full)
-        t_prev = _clamp(
+        t_run, t_prev, t_low = _clamp(
             _plane_time(t_closest, cx, cz, dx, dz, theta_sin[edge], theta_cos[edge]),
-            t_prev, np.inf, slack, step == th_steps - 1,
+            t_run, t_low, np.inf, slack, step == th_steps - 1,
         )
         if t_prev > t_final:
             break
@@ -390,6 +399,8 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
     row = times[PHI]
     done = False
     step = 0
+    t_run = t_prev
+    t_low = t_prev
     while step < steps and not done:
         count = min(CONE_BLOCK, steps - step)
         _cone_times(zone + 1 if sigma > 0 else zone - count + 1, count, phi_tan2, phi_nappe, row,
@@ -397,7 +408,8 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
         if sigma < 0:
             _reverse(row, n_p + 1, count)
         for _ in range(count):
-            t_prev = _clamp(row[n_p + 1], t_prev, t_high, slack, step == steps - 1)
+            t_run, t_prev, t_low = _clamp(row[n_p + 1], t_run, t_low, t_high, slack,
+                                          step == steps - 1)
             if t_prev > t_final:
                 done = True
                 break
@@ -422,7 +434,7 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
         phi_nappe, t_closest, cy, dy, cab, ca2, b2, t_final, slack, times, zones,
     )
     if ph_jump == 1:
-        t_prev = _clamp(t_turn, t_prev, inf, slack, False)
+        _, t_prev, _ = _clamp(t_turn, t_prev, t_prev, inf, slack, False)
         if t_prev > t_final:
             done = True
         else:
@@ -541,17 +553,17 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
     # ---- phase 2: each family's crossing times, in order, up to the final exit.
     n_r = 0
     zone = ir
-    t_prev = 0.0
+    t_run = 0.0
     for _ in range(rho_steps_in):
-        t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone], False), t_prev, inf, slack,
-                        False)
+        t_run, t_prev, _ = _clamp(_sphere_time(t_closest, h2, rho_sq[zone], False), t_run, t_run,
+                                  inf, slack, False)
         zone -= 1
         times[RHO, n_r + 1] = t_prev
         zones[RHO, n_r + 1] = zone
         n_r += 1
     for _ in range(rho_steps_out):
-        t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone + 1], True), t_prev, inf, slack,
-                        False)
+        t_run, t_prev, _ = _clamp(_sphere_time(t_closest, h2, rho_sq[zone + 1], True), t_run,
+                                  t_run, inf, slack, False)
         zone += 1
         times[RHO, n_r + 1] = t_prev
         zones[RHO, n_r + 1] = zone
