@@ -606,11 +606,13 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
     done_p = 0
     t_now = 0.0
     count = 0
-    last_i = -1
-    last_j = -1
-    last_k = -1
-    last_exit = -inf
     sliver_start = -1.0
+    # ``flowing``: the last step wrote a segment that ends now, so this one, if
+    # inside and no sliver, starts where it ended and is in another cell (a
+    # crossing changes its family's zone) -- except across the seam of a
+    # one-sector circle, where it stays the same.
+    can_flow = not (theta_full and n_theta == 1)
+    flowing = False
     for _ in range(n_r + n_t + n_p):
         t_rho = times[RHO, done_r + 1]
         t_theta = times[THETA, done_t + 1]
@@ -621,8 +623,19 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
         jt = zones[THETA, done_t]
         kp = zones[PHI, done_p]
         inside = 0 <= ir < n_rho and jt < n_theta and 0 <= kp < n_phi
-        if inside:
-            touching = count > 0 and t_now - last_exit <= snap
+        if flowing and inside and t_next - t_now > snap:
+            # The common step, with nothing to absorb or extend.
+            cells[start + count, 0] = ir
+            cells[start + count, 1] = jt
+            cells[start + count, 2] = kp
+            t_enter[start + count] = t_now
+            t_exit[start + count] = t_next
+            count += 1
+        elif inside:
+            flowing = False
+            # The segment written last, read back: it ends at ``last_exit``.
+            last_exit = t_exit[start + count - 1] if count > 0 else -inf
+            touching = t_now - last_exit <= snap
             if t_next - t_now <= snap:
                 if sliver_start < 0.0 and not touching:
                     sliver_start = t_now
@@ -634,7 +647,9 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
                 else:
                     t_from = t_now
                 sliver_start = -1.0
-                if touching and ir == last_i and jt == last_j and kp == last_k:
+                if (touching and ir == cells[start + count - 1, 0]
+                        and jt == cells[start + count - 1, 1]
+                        and kp == cells[start + count - 1, 2]):
                     # The same cell on both sides of a sliver or a zero-length detour
                     # (tangency, the seam of a one-sector circle): extend, don't repeat.
                     t_exit[start + count - 1] = t_next
@@ -645,11 +660,9 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
                     t_enter[start + count] = t_from
                     t_exit[start + count] = t_next
                     count += 1
-                    last_i = ir
-                    last_j = jt
-                    last_k = kp
-                last_exit = t_next
+                flowing = can_flow
         else:
+            flowing = False
             sliver_start = -1.0
         t_now = t_next
         # Bitwise ``&`` on booleans, not ``and``: no short-circuit branch.
