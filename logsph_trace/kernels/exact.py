@@ -24,8 +24,10 @@ one: the indices cannot drift.
 
 Each family's crossings form a sorted list, computed in a loop of independent
 square roots and divisions (the CPU overlaps them); the traversal is then a
-three-way merge of the lists, without a branch on which family crosses (about
-6 ns a step on the benchmark machine, close to an Amanatides & Woo step).
+three-way merge of the lists, without a branch on which family crosses. Its
+common step, a segment that starts where the last one ended, inside the grid,
+writes that segment and nothing else; the rare ones (slivers to absorb, a
+cell to extend, leaving or entering the grid) read the last segment back.
 Every loop runs over a count fixed beforehand, at most ``scratch_size``.
 """
 
