@@ -453,6 +453,16 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
     return n_p
 
 
+@jit(inline="always")
+def _write_segment(cells, t_enter, t_exit, at, ir, jt, kp, t_from, t_to):
+    """Write the segment of cell (ir, jt, kp) from ``t_from`` to ``t_to`` at row ``at``."""
+    cells[at, 0] = ir
+    cells[at, 1] = jt
+    cells[at, 2] = kp
+    t_enter[at] = t_from
+    t_exit[at] = t_to
+
+
 # What a call of trace_ray does (see its docstring).
 BOUND = 0
 TRACE = 1
@@ -627,11 +637,7 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
         inside = 0 <= ir < n_rho and jt < n_theta and 0 <= kp < n_phi
         if flowing and inside and t_next - t_now > snap:
             # The common step, with nothing to absorb or extend.
-            cells[start + count, 0] = ir
-            cells[start + count, 1] = jt
-            cells[start + count, 2] = kp
-            t_enter[start + count] = t_now
-            t_exit[start + count] = t_next
+            _write_segment(cells, t_enter, t_exit, start + count, ir, jt, kp, t_now, t_next)
             count += 1
         elif inside:
             flowing = False
@@ -656,11 +662,8 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
                     # (tangency, the seam of a one-sector circle): extend, don't repeat.
                     t_exit[start + count - 1] = t_next
                 else:
-                    cells[start + count, 0] = ir
-                    cells[start + count, 1] = jt
-                    cells[start + count, 2] = kp
-                    t_enter[start + count] = t_from
-                    t_exit[start + count] = t_next
+                    _write_segment(cells, t_enter, t_exit, start + count, ir, jt, kp, t_from,
+                                   t_next)
                     count += 1
                 flowing = can_flow
         else:
