@@ -12,9 +12,10 @@ constants from other files; after an edit or a ``git pull`` that changed only
 those, it would load the stale machine code. So the package's kernels are
 checked against all of its sources (:func:`cache_by_package`): any change to
 the package recompiles them. ``LOGSPH_TRACE_CACHE=0`` in the environment
-turns the cache off (a read-only install). ``error_model="numpy"`` makes a float division by zero
-return ``inf``/``nan`` as IEEE says instead of raising, which the root solvers
-rely on (a ray parallel to a plane has its crossing at infinity).
+turns the cache off (a read-only install). ``error_model="numpy"`` makes a
+float division by zero return ``inf``/``nan`` as IEEE says instead of
+raising, which the root solvers rely on (a ray parallel to a plane has its
+crossing at infinity).
 ``fastmath`` stays off: it may reorder the tie rules and NaN checks the
 exactness tests hold us to.
 

@@ -95,7 +95,6 @@ def test_the_cache_switch_turns_numba_caching_off():
         assert out.split() == want.split(), out
 
 
-
 STALE_HELPER = """
 from logsph_trace._jit import jit
 VALUE = {value}
