@@ -170,6 +170,7 @@ def test_the_gpu_kernels_are_checked_against_all_the_package_sources():
         assert isinstance(locator, _jit._PackageLocator), kernel
         assert locator.get_source_stamp()[1] == digest
 
+
 def test_serial_kernels_borrow_their_arrays():
     """Serial kernels run without Numba's runtime, so a call counts no references
     (``_jit.jit``); only those that allocate, sort or return an array keep it."""
