@@ -58,7 +58,7 @@ def box_max_segments(shape):
     return shape[0] + shape[1] + shape[2]
 
 
-@jit
+@jit(inline="always")
 def trace_box_ray(origins, directions, row, low, size, shape, cells, t_enter, t_exit, start):
     """Trace ray ``row`` (unit direction) through the box, writing its voxels from
     ``start`` on; return their number.
