@@ -3,7 +3,7 @@
     python -m bench.cuda_probe                 # on a machine with a CUDA GPU and numba-cuda
     NUMBA_ENABLE_CUDASIM=1 NUMBA_DISABLE_JIT=1 python -m bench.cuda_probe --rays 200 --cells 16
 
-Calls ``kernels.exact.trace_ray`` -- the same source the CPU runs -- from a
+Calls ``kernels.exact.trace_span`` -- the same source the CPU runs -- from a
 ``numba.cuda`` kernel, one thread per ray, with per-ray scratch in global
 memory, and compares every ray with ``trace_many`` on the CPU: cells equal,
 distances within 1e-12 relative (a GPU may contract multiply-adds). This is a
@@ -24,17 +24,19 @@ from logsph_trace.kernels import exact
 
 
 @cuda.jit
-def trace_kernel(origins, directions, grid, times, zones, lookups, cells, t_enter, t_exit, counts,
-                 worst, mode):
-    """One thread per ray: the CPU's ``exact.trace_ray``, writing from ``row * worst`` on.
+def trace_kernel(origins, directions, t_max, grid, times, zones, lookups, cells, t_enter, t_exit,
+                 ends, counts, worst):
+    """One thread per ray: the CPU's ``exact.trace_span`` of one ray, writing from
+    ``row * worst`` on.
 
     ``grid`` is the ``GridArrays`` bundle, its arrays on the device.
     """
     row = cuda.grid(1)
     if row < origins.shape[0]:
-        counts[row] = exact.trace_ray(origins, directions, row, grid, np.inf, times[row],
-                                      zones[row], lookups[row], cells, t_enter, t_exit,
-                                      row * worst, mode)
+        end, _ = exact.trace_span(row, row + 1, origins, directions, t_max, grid, times[row],
+                                  zones[row], lookups[row], cells, t_enter, t_exit, ends,
+                                  row * worst, (row + 1) * worst)
+        counts[row] = end - row * worst
 
 
 def probe(n_rays, cells):
@@ -67,11 +69,13 @@ def probe(n_rays, cells):
     enter_out = cuda.device_array(n_rays * worst, dtype=np.float64)
     exit_out = cuda.device_array(n_rays * worst, dtype=np.float64)
     counts = cuda.device_array(n_rays, dtype=np.int64)
+    ends = cuda.device_array(n_rays + 1, dtype=np.int64)
+    t_max = cuda.to_device(np.full(n_rays, np.inf))
     threads = 128
     blocks = (n_rays + threads - 1) // threads
     start = time.perf_counter()
-    trace_kernel[blocks, threads](d_origins, d_directions, device, times, zones, lookups,
-                                  cells_out, enter_out, exit_out, counts, worst, exact.FULL)
+    trace_kernel[blocks, threads](d_origins, d_directions, t_max, device, times, zones, lookups,
+                                  cells_out, enter_out, exit_out, ends, counts, worst)
     cuda.synchronize()
     first_call = time.perf_counter() - start
 

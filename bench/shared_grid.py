@@ -40,13 +40,8 @@ def private_grid(grid):
 
 def _bounds(origins, directions, grid, bounds, first, last):
     lookups = np.empty(8, dtype=np.int64)
-    no_times = np.empty((3, 0))
-    no_zones = np.empty((3, 0), dtype=np.int64)
-    no_cells = np.empty((0, 3), dtype=np.int32)
-    no_t = np.empty(0)
     for row in range(first, last):
-        bounds[row] = exact.trace_ray(origins, directions, row, grid, np.inf, no_times, no_zones,
-                                      lookups, no_cells, no_t, no_t, 0, exact.BOUND)
+        bounds[row] = exact.ray_bound(origins, directions, row, grid, lookups)
 
 
 _bounds = numba.njit(_bounds)

@@ -2,18 +2,18 @@
 
 Imported only when a call asks for ``device="cuda"``, so ``import
 logsph_trace`` never needs CUDA. The per-ray code is the CPU's own
-``kernels.exact.trace_ray``, compiled a second time by numba-cuda: there is
-no second copy of the traversal.
+``kernels.exact.trace_span`` and ``ray_bound``, compiled a second time by
+numba-cuda: there is no second copy of the traversal.
 
 A batch runs in five device steps, and nothing but a few totals comes back
 to the host:
 
-1. a bound kernel: each ray's upper bound on its segments (``trace_ray``'s
-   ``BOUND`` mode, phase 1 only);
+1. a bound kernel: each ray's upper bound on its segments (``ray_bound``,
+   phase 1 only);
 2. an exclusive prefix sum of the bounds, on the device (``exclusive_scan``):
    every ray's region;
-3. a trace kernel (``FULL`` mode) writing each ray into its region, and its
-   segment count;
+3. a trace kernel (``trace_span`` of one ray) writing each ray into its
+   region, and its segment count;
 4. a prefix sum of the counts: the output's CSR offsets;
 5. a copy of every region into the exact-size output.
 
@@ -74,27 +74,29 @@ def require():
 # ---- kernels --------------------------------------------------------------------------------
 
 @kernel
-def _bound_kernel(origins, directions, t_max, grid, first, times, zones, lookups, bounds, cells,
-                  t_enter, t_exit):
+def _bound_kernel(origins, directions, grid, first, lookups, bounds):
     """Ray ``first + k`` (thread k): its bound on segments into ``bounds[first + k]``."""
     k = cuda.grid(1)
     row = first + k
     if k < lookups.shape[0] and row < origins.shape[0]:
-        bounds[row] = exact.trace_ray(origins, directions, row, grid, t_max[row],
-                                      times[:, :, k], zones[:, :, k], lookups[k], cells, t_enter,
-                                      t_exit, 0, exact.BOUND)
+        bounds[row] = exact.ray_bound(origins, directions, row, grid, lookups[k])
 
 
 @kernel
 def _trace_kernel(origins, directions, t_max, grid, first, times, zones, lookups, regions, base,
-                  cells, t_enter, t_exit, counts):
-    """Ray ``first + k`` (thread k) into its region, ``regions[row] - base`` on; its count."""
+                  cells, t_enter, t_exit, ends, counts):
+    """Ray ``first + k`` (thread k) into its region, ``regions[row] - base`` on; its count.
+
+    ``ends[row + 1]`` gets where its segments end (``trace_span``'s offsets).
+    """
     k = cuda.grid(1)
     row = first + k
     if k < lookups.shape[0] and row < origins.shape[0]:
-        counts[row] = exact.trace_ray(origins, directions, row, grid, t_max[row], times[:, :, k],
-                                      zones[:, :, k], lookups[k], cells, t_enter, t_exit,
-                                      regions[row] - base, exact.FULL)
+        start = regions[row] - base
+        end, _ = exact.trace_span(row, row + 1, origins, directions, t_max, grid, times[:, :, k],
+                                  zones[:, :, k], lookups[k], cells, t_enter, t_exit, ends,
+                                  start, BIG)
+        counts[row] = end - start
 
 
 @kernel
@@ -223,13 +225,10 @@ def _trace(grid, d_origins, d_directions, d_t_max):
     size = int(exact.scratch_size(*grid.shape))
     times, zones, lookups = _scratch(size, n_rays)
     in_flight = lookups.shape[0]
-    no_cells = cuda.device_array((1, 3), dtype=np.int32)
-    no_times = cuda.device_array(1, dtype=np.float64)
 
     bounds = cuda.device_array(max(n_rays, 1), dtype=np.int64)
     for first in range(0, n_rays, in_flight):
-        _launch(_bound_kernel, in_flight, d_origins, d_directions, d_t_max, args, first, times,
-                zones, lookups, bounds, no_cells, no_times, no_times)
+        _launch(_bound_kernel, in_flight, d_origins, d_directions, args, first, lookups, bounds)
     regions = exclusive_scan(bounds[:n_rays])
     budget = max(int(_free_bytes() * MEMORY_SHARE) // SEGMENT_BYTES, 1)
     if int(regions[n_rays]) <= budget:  # the usual case: one total comes back
@@ -244,8 +243,10 @@ def _trace(grid, d_origins, d_directions, d_t_max):
             splits.append(min(max(stop, start + 1), n_rays))
 
     counts = cuda.device_array(max(n_rays, 1), dtype=np.int64)
+    ends = cuda.device_array(n_rays + 1, dtype=np.int64)
     parts = [_trace_part(args, d_origins, d_directions, d_t_max, regions, start, stop, times,
-                         zones, lookups, counts) for start, stop in zip(splits[:-1], splits[1:])]
+                         zones, lookups, ends, counts)
+             for start, stop in zip(splits[:-1], splits[1:])]
     offsets = exclusive_scan(counts[:n_rays])
     if len(parts) == 1:
         cells, t_enter, t_exit = parts[0]
@@ -255,7 +256,7 @@ def _trace(grid, d_origins, d_directions, d_t_max):
 
 
 def _trace_part(args, origins, directions, t_max, regions, start, stop, times, zones, lookups,
-                counts):
+                ends, counts):
     """Trace rays ``start:stop`` into their regions, then copy them to exact-size arrays."""
     base = int(regions[start])
     room = max(int(regions[stop]) - base, 1)
@@ -266,7 +267,7 @@ def _trace_part(args, origins, directions, t_max, regions, start, stop, times, z
     for first in range(start, stop, in_flight):
         _launch(_trace_kernel, min(in_flight, stop - first), origins, directions, t_max, args,
                 first, times, zones, lookups[:min(in_flight, stop - first)], regions, base,
-                loose_cells, loose_enter, loose_exit, counts)
+                loose_cells, loose_enter, loose_exit, ends, counts)
     offsets = exclusive_scan(counts[start:stop])
     total = int(offsets[stop - start])  # one number back to the host
     cells = cuda.device_array((total, 3), dtype=np.int32)

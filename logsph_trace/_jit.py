@@ -197,8 +197,8 @@ def jit(func=None, runtime=False, **overrides):
     runtime a kernel borrows the arrays it is given instead of counting
     references to them. With it, every call of a kernel that is not inlined
     takes and drops a reference to each array it is passed or reads out of
-    a bundle: two atomic operations per array, about 40 per ray in
-    ``exact.trace_ray``, which cost a third of its set-up. A kernel that
+    a bundle: two atomic operations per array, about 40 per ray when the
+    exact traversal was called once per ray, a third of its set-up. A kernel that
     needs the runtime and lacks it fails to compile, loudly; so does one
     without it that calls a kernel that sorts, though only if that sort was
     not compiled earlier in the process (``tests/test_nojit.py`` compiles

@@ -146,7 +146,7 @@ def test_the_package_kernels_are_checked_against_all_its_sources():
 
     if not _jit.CACHE:
         pytest.skip("LOGSPH_TRACE_CACHE=0: nothing is cached")
-    locator = exact.trace_ray._cache._impl.locator
+    locator = exact.trace_span._cache._impl.locator
     assert isinstance(locator, _jit._PackageLocator)
     assert locator.get_source_stamp()[1] == _jit._sources_digest(Path(_jit.__file__).parent)
     assert locator.get_cache_path() == str(Path(exact.__file__).parent / "__pycache__")
@@ -197,7 +197,7 @@ def test_serial_kernels_borrow_their_arrays():
                     source = inspect.getsource(value.py_func)
                     if any(call in source for call in needs_runtime):
                         assert name in keep, f"{name} allocates or sorts"
-    assert {"trace_ray", "trace_box_ray", "walk_ray", "locate"} <= seen
+    assert {"trace_span", "ray_bound", "box_span", "walk_ray", "locate"} <= seen
     assert keep <= seen
 
 

@@ -170,7 +170,7 @@ def line_geometry(ox, oy, oz, dx, dy, dz):
 
 @jit(inline="always")
 def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, on_axis, jt, jt_limit, theta_edges,
-               theta_full, lookups, reuse):
+               theta_full):
     """Phase 1 for theta: one monotone sweep, or a jump where the line meets the y axis.
 
     ``c`` is the line's closest point to the centre and ``t_closest`` its
@@ -184,8 +184,6 @@ def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, on_axis, jt, jt_limit
     would be taken to sweep to it and never reach it). Returns the start
     zone, the sweep sign, the number of half-planes crossed and ``t_axis``,
     the time of the jump (inf when none).
-    The ambiguous case of a zone wider than half a turn is decided once and
-    kept in ``lookups[4]`` (read back when ``reuse``).
     """
     inf = np.inf
     n_theta = theta_edges.shape[0] - 1
@@ -209,9 +207,7 @@ def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, on_axis, jt, jt_limit
     else:
         th_sigma = 1 if sweep_sign > 0.0 else -1
         th_steps = ((jt_limit - jt) * th_sigma) % n_zones_theta
-        if th_steps == 0 and reuse:
-            th_steps = lookups[4]
-        elif th_steps == 0:
+        if th_steps == 0:
             # A zone wider than half a turn: the sweep (< pi) may still leave it
             # and come round into it again; compare the sweep with the gap.
             theta_start = azimuth(ox, oz)
@@ -221,13 +217,12 @@ def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, on_axis, jt, jt_limit
             gap = ((theta_edges[edge] - theta_start) * th_sigma) % TWO_PI
             if gap < sweep:
                 th_steps = n_zones_theta
-            lookups[4] = th_steps
     return jt, th_sigma, th_steps, t_axis
 
 
 @jit(inline="always")
 def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_start, kp, kp_limit, grid,
-             lookups, reuse):
+             lookups):
     """Phase 1 for phi: up to two monotone branches split at the turning point,
     or piecewise constant with a jump at the centre.
 
@@ -240,7 +235,7 @@ def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_start, kp, kp_
     the line comes to the centre. Returns the start zone, ``t_turn`` (end of
     the first branch, inf when none), the crossings on each branch, the zone
     the second branch starts in, and 1 when phi jumps at ``t_turn``. The zone
-    at the turning point is kept in ``lookups[7]`` (read back when ``reuse``).
+    at the turning point is kept in ``lookups[7]``, the next ray's guess there.
     """
     inf = np.inf
     b2 = dx * dx + dz * dz
@@ -265,13 +260,10 @@ def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_start, kp, kp_
         turn = -offset / slope if slope != 0.0 else inf
         if t_start - t_closest < turn < inf:
             t_turn = t_closest + turn
-            if reuse:
-                ph2_start = lookups[7]
-            else:
-                # lookups[7] holds the ray before's zone there: a guess.
-                ph2_start = phi_zone_near(cx + turn * dx, cy + turn * dy, cz + turn * dz,
-                                          lookups[7], grid)
-                lookups[7] = ph2_start
+            # lookups[7] holds the ray before's zone there: a guess.
+            ph2_start = phi_zone_near(cx + turn * dx, cy + turn * dy, cz + turn * dz, lookups[7],
+                                      grid)
+            lookups[7] = ph2_start
             ph1_steps = abs(ph2_start - kp)
         ph2_steps = abs(kp_limit - ph2_start)
     # Only through the centre does the first branch end in another zone than
@@ -454,41 +446,13 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
 
 
 @jit(inline="always")
-def _write_segment(cells, t_enter, t_exit, at, ir, jt, kp, t_from, t_to):
-    """Write the segment of cell (ir, jt, kp) from ``t_from`` to ``t_to`` at row ``at``."""
-    cells[at, 0] = ir
-    cells[at, 1] = jt
-    cells[at, 2] = kp
-    t_enter[at] = t_from
-    t_exit[at] = t_to
+def ray_start(origins, directions, row, rho_edges, rho_kind):
+    """Ray ``row``'s origin and unit direction, its ``line_geometry`` and phase 1 for rho.
 
-
-# What a call of trace_ray does (see its docstring).
-BOUND = 0
-TRACE = 1
-FULL = 2
-
-
-@jit
-def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cells, t_enter,
-              t_exit, start, mode):
-    """Trace ray ``row`` (unit direction) up to distance ``t_max`` (``inf``: to the end).
-
-    ``grid`` is the grid's ``GridArrays``.
-
-    ``mode == BOUND``: run phase 1 only, store the ray's zone lookups (the
-    atan2 and log calls that are most of the set-up) in ``lookups`` (8 ints) and
-    return an upper bound on its number of segments: the number of crossings,
-    since each merge step emits at most one segment.
-    ``mode == TRACE``: read the lookups back, run all phases, write the segments
-    to ``cells[start:]``, ``t_enter[start:]``, ``t_exit[start:]`` and return their
-    number. ``mode == FULL``: the same, computing the lookups (one pass).
-    ``times`` and ``zones`` are scratch of shape (3, scratch_size(...)).
-
-    Phases: (1) per family, the zone at each branch end and so the number of
-    crossings; (2) per family, the crossing times in order -- independent
-    square roots and divisions the CPU can overlap; (3) a three-way merge of
-    the sorted lists, emitting a segment whenever the ray is inside.
+    Returns the origin, the direction, ``line_geometry``'s five values, then
+    the rho zones at the start, ``ir``, and at the closest approach, ``ir_turn``
+    (rho falls until then and rises after, Eq. 9a). ``ir_turn == n_rho``: beyond
+    rho_max and moving away, never inside.
     """
     ox = origins[row, 0]
     oy = origins[row, 1]
@@ -496,213 +460,66 @@ def trace_ray(origins, directions, row, grid, t_max, times, zones, lookups, cell
     dx = directions[row, 0]
     dy = directions[row, 1]
     dz = directions[row, 2]
-    rho_edges = grid.rho_edges
-    rho_sq = grid.rho_sq
-    rho_kind = grid.rho_kind
-    theta_edges = grid.theta_edges
-    theta_full = grid.theta_full
-    phi_edges = grid.phi_edges
-    n_rho = rho_edges.shape[0] - 1
-    n_theta = theta_edges.shape[0] - 1
-    n_phi = phi_edges.shape[0] - 1
-    inf = np.inf
-    reuse = mode == TRACE
-    # Rounding of a crossing time is ~1e-14 of the scene's size; a crossing found
-    # further in the past than this is one at infinity (see _clamp).
-    slack = 1e-9 * (rho_edges[n_rho] + math.sqrt(ox * ox + oy * oy + oz * oz))
-
     t_closest, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
+    ir = rho_zone(ox, oy, oz, rho_edges, rho_kind)
+    ir_turn = ir
+    if t_closest > 0.0:
+        ir_turn = min(locate(math.sqrt(h2), rho_edges, rho_kind), ir)
+    return ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn
 
-    # ---- phase 1, rho: falls until the closest approach t_c, then rises (Eq. 9a).
-    if reuse:
-        ir = lookups[0]
-        ir_turn = lookups[1]
-    else:
-        ir = rho_zone(ox, oy, oz, rho_edges, rho_kind)
-        ir_turn = ir
-        if t_closest > 0.0:
-            ir_turn = min(locate(math.sqrt(h2), rho_edges, rho_kind), ir)
-        lookups[0] = ir
-        lookups[1] = ir_turn
-    rho_steps_in = ir - ir_turn
-    rho_steps_out = n_rho - ir_turn
-    if rho_steps_out == 0:
-        return 0  # beyond rho_max and moving away: never inside
 
-    # ---- phase 1, theta and phi: the zones at the branch ends, so the crossing counts.
-    if reuse:
-        jt = lookups[2]
-        jt_limit = lookups[3]
-    else:
-        jt = theta_zone_rough(ox, oz, theta_edges, grid.theta_sin, grid.theta_cos,
-                              grid.theta_kind)
-        jt_limit = theta_zone_rough(dx, dz, theta_edges, grid.theta_sin, grid.theta_cos,
-                                    grid.theta_kind)
-        lookups[2] = jt
-        lookups[3] = jt_limit
+@jit(inline="always")
+def angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid, lookups):
+    """Phase 1 for theta and phi: the zones at the branch ends, so the crossing counts.
+
+    Returns ``theta_plan``'s four values, then the direction's phi zone, then
+    ``phi_plan``'s six.
+    """
+    theta_edges = grid.theta_edges
+    jt = theta_zone_rough(ox, oz, theta_edges, grid.theta_sin, grid.theta_cos, grid.theta_kind)
+    jt_limit = theta_zone_rough(dx, dz, theta_edges, grid.theta_sin, grid.theta_cos,
+                                grid.theta_kind)
     jt, th_sigma, th_steps, t_axis = theta_plan(
         ox, oz, cx, cz, dx, dz, t_closest, 0.0, ox == 0.0 and oz == 0.0, jt, jt_limit,
-        theta_edges, theta_full, lookups, reuse,
+        theta_edges, grid.theta_full,
     )
-    if reuse:
-        kp_limit = lookups[5]
-        kp = lookups[6]
-    else:
-        kp_limit = phi_zone_rough(dx, dy, dz, phi_edges, grid.phi_sin, grid.phi_cos,
-                                  grid.phi_kind)
-        kp = phi_zone_rough(ox, oy, oz, phi_edges, grid.phi_sin, grid.phi_cos, grid.phi_kind)
-        lookups[5] = kp_limit
-        lookups[6] = kp
+    phi_edges = grid.phi_edges
+    kp_limit = phi_zone_rough(dx, dy, dz, phi_edges, grid.phi_sin, grid.phi_cos, grid.phi_kind)
+    kp = phi_zone_rough(ox, oy, oz, phi_edges, grid.phi_sin, grid.phi_cos, grid.phi_kind)
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
-        ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, 0.0, kp, kp_limit, grid, lookups, reuse,
+        ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, 0.0, kp, kp_limit, grid, lookups,
     )
-
-    if mode == BOUND:
-        jumps = (1 if t_axis < inf else 0) + ph_jump
-        # + 1: the stop at t_max, an extra crossing out of the region.
-        return rho_steps_in + rho_steps_out + th_steps + ph1_steps + ph2_steps + jumps + 1
-
-    # ---- phase 2: each family's crossing times, in order, up to the final exit.
-    n_r = 0
-    zone = ir
-    t_run = 0.0
-    for _ in range(rho_steps_in):
-        t_run, t_prev, _ = _clamp(_sphere_time(t_closest, h2, rho_sq[zone], False), t_run, t_run,
-                                  inf, slack, False)
-        zone -= 1
-        times[RHO, n_r + 1] = t_prev
-        zones[RHO, n_r + 1] = zone
-        n_r += 1
-    for _ in range(rho_steps_out):
-        t_run, t_prev, _ = _clamp(_sphere_time(t_closest, h2, rho_sq[zone + 1], True), t_run,
-                                  t_run, inf, slack, False)
-        zone += 1
-        times[RHO, n_r + 1] = t_prev
-        zones[RHO, n_r + 1] = zone
-        n_r += 1
-    if t_max < times[RHO, n_r]:
-        # Stop at t_max: drop the rho crossings beyond it and leave the region
-        # there (zone n_rho), so the merge ends the last segment at t_max.
-        while n_r > 0 and times[RHO, n_r] >= t_max:
-            n_r -= 1
-        times[RHO, n_r + 1] = t_max
-        zones[RHO, n_r + 1] = n_rho
-        n_r += 1
-    # The last rho crossing leaves the region for good: nothing after it matters.
-    t_final = times[RHO, n_r]
-
-    n_t = theta_times(cx, cz, dx, dz, t_closest, 0.0, jt, jt_limit, th_sigma, th_steps, t_axis,
-                      grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times, zones)
-    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, 0.0, kp, kp_limit, t_turn, ph1_steps,
-                    ph2_start, ph2_steps, ph_jump, grid.phi_tan2, grid.phi_nappe, t_final, slack,
-                    times, zones)
-
-    # ---- phase 3: merge the three sorted lists; emit while inside.
-    # Crossings that coincide (a corner where a sphere, a half-plane and a cone
-    # meet) come out a few ulps apart; the slivers between them (shorter than
-    # ``snap``) are cells the ray only touches. They are absorbed into the next
-    # segment, which starts where the last one ended, so coverage stays exact.
-    snap = 1e-3 * slack
-    zones[RHO, 0] = ir
-    zones[THETA, 0] = jt
-    zones[PHI, 0] = kp
-    times[RHO, n_r + 1] = inf
-    times[THETA, n_t + 1] = inf
-    times[PHI, n_p + 1] = inf
-    # Crossings consumed so far per family: the current zone is zones[f, done_f]
-    # and the next crossing times[f, done_f + 1]. Picking the family is two
-    # selects and advancing is a flag add, so the loop has no branch on which
-    # family crosses -- the branch Amanatides & Woo mispredict on every voxel.
-    done_r = 0
-    done_t = 0
-    done_p = 0
-    t_now = 0.0
-    count = 0
-    sliver_start = -1.0
-    # ``flowing``: the last step wrote a segment that ends now, so this one, if
-    # inside and no sliver, starts where it ended and is in another cell (a
-    # crossing changes its family's zone) -- except across the seam of a
-    # one-sector circle, where it stays the same.
-    can_flow = not (theta_full and n_theta == 1)
-    flowing = False
-    for _ in range(n_r + n_t + n_p):
-        t_rho = times[RHO, done_r + 1]
-        t_theta = times[THETA, done_t + 1]
-        t_phi = times[PHI, done_p + 1]
-        t_angle = min(t_theta, t_phi)
-        t_next = max(min(t_rho, t_angle), t_now)
-        ir = zones[RHO, done_r]
-        jt = zones[THETA, done_t]
-        kp = zones[PHI, done_p]
-        inside = 0 <= ir < n_rho and jt < n_theta and 0 <= kp < n_phi
-        if flowing and inside and t_next - t_now > snap:
-            # The common step, with nothing to absorb or extend.
-            _write_segment(cells, t_enter, t_exit, start + count, ir, jt, kp, t_now, t_next)
-            count += 1
-        elif inside:
-            flowing = False
-            # The segment written last, read back: it ends at ``last_exit``.
-            last_exit = t_exit[start + count - 1] if count > 0 else -inf
-            touching = t_now - last_exit <= snap
-            if t_next - t_now <= snap:
-                if sliver_start < 0.0 and not touching:
-                    sliver_start = t_now
-            else:
-                if touching:
-                    t_from = last_exit
-                elif sliver_start >= 0.0:
-                    t_from = sliver_start
-                else:
-                    t_from = t_now
-                sliver_start = -1.0
-                if (touching and ir == cells[start + count - 1, 0]
-                        and jt == cells[start + count - 1, 1]
-                        and kp == cells[start + count - 1, 2]):
-                    # The same cell on both sides of a sliver or a zero-length detour
-                    # (tangency, the seam of a one-sector circle): extend, don't repeat.
-                    t_exit[start + count - 1] = t_next
-                else:
-                    _write_segment(cells, t_enter, t_exit, start + count, ir, jt, kp, t_from,
-                                   t_next)
-                    count += 1
-                flowing = can_flow
-        else:
-            flowing = False
-            sliver_start = -1.0
-        t_now = t_next
-        # Bitwise ``&`` on booleans, not ``and``: no short-circuit branch.
-        rho_first = t_rho <= t_angle
-        theta_first = t_theta <= t_phi
-        done_r += rho_first
-        done_t += (not rho_first) & theta_first
-        done_p += (not rho_first) & (not theta_first)
-        if done_r == n_r:
-            break  # past rho_max and moving away for good
-    return count
+    return (jt, jt_limit, th_sigma, th_steps, t_axis, kp_limit, kp, t_turn, ph1_steps, ph2_start,
+            ph2_steps, ph_jump)
 
 
-# The parallel batch kernels. One thread never needs them: it traces by
-# appending (``trace_span``). Each ray writes only its own slice or region, so
-# the output does not depend on the number of threads.
-@jit(parallel=True)
-def bound_counts(origins, directions, grid, bounds):
-    """An upper bound on each ray's segments, into ``bounds``: its set-up only, no stepping.
+@jit
+def ray_bound(origins, directions, row, grid, lookups):
+    """An upper bound on ray ``row``'s segments: its set-up only, no stepping.
 
-    A ray never writes more segments than its bound, so regions sized by the
-    bounds cannot overflow.
+    The number of its crossings, plus one for a stop at ``t_max``, since each
+    merge step of ``trace_span`` emits at most one segment. ``lookups`` as in
+    ``trace_span``.
     """
-    n_rays = origins.shape[0]
-    no_times = np.empty((3, 0), dtype=np.float64)
-    no_zones = np.empty((3, 0), dtype=np.int64)
-    no_cells = np.empty((0, 3), dtype=np.int32)
-    no_t = np.empty(0, dtype=np.float64)
-    for block in prange((n_rays + BLOCK - 1) // BLOCK):
-        lookups = np.empty(8, dtype=np.int64)
-        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            # np.int64, not literals: Numba would compile trace_ray once more,
-            # specialised on them (about 3 s cold); trace_span passes its mode so too.
-            bounds[row] = trace_ray(origins, directions, row, grid, np.inf, no_times, no_zones,
-                                    lookups, no_cells, no_t, no_t, np.int64(0), np.int64(BOUND))
+    n_rho = grid.rho_edges.shape[0] - 1
+    ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn = ray_start(
+        origins, directions, row, grid.rho_edges, grid.rho_kind)
+    if ir_turn == n_rho:
+        return 0
+    (_, _, _, th_steps, t_axis, _, _, _, ph1_steps, _, ph2_steps,
+     ph_jump) = angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid, lookups)
+    jumps = (1 if t_axis < np.inf else 0) + ph_jump
+    return (ir - ir_turn) + (n_rho - ir_turn) + th_steps + ph1_steps + ph2_steps + jumps + 1
+
+
+@jit(inline="always")
+def _write_segment(cells, t_enter, t_exit, at, ir, jt, kp, t_from, t_to):
+    """Write the segment of cell (ir, jt, kp) from ``t_from`` to ``t_to`` at row ``at``."""
+    cells[at, 0] = ir
+    cells[at, 1] = jt
+    cells[at, 2] = kp
+    t_enter[at] = t_from
+    t_exit[at] = t_to
 
 
 @jit
@@ -714,23 +531,186 @@ def max_segments(n_rho, n_theta, n_phi):
 @jit
 def trace_span(first, last, origins, directions, t_max, grid, times, zones, lookups, cells, t_enter,
                t_exit, offsets, used, limit):
-    """One thread: trace rays first..last-1 in order, appending from segment ``used`` on.
+    """One thread: trace rays first..last-1 (unit directions) in order, appending from
+    segment ``used`` on; ray ``row`` up to distance ``t_max[row]`` (``inf``: to the end).
 
     Without threads a ray's final offset is known when it starts (the sum of
     the counts before it), so no bound pass or gather is needed. Writes
     ``offsets[row + 1]`` (absolute positions in the arrays). Stops before a ray
     that might not fit below ``limit`` (``max_segments`` per ray); returns
-    (new ``used``, the first row not traced).
+    (new ``used``, the first row not traced). ``grid`` is the grid's
+    ``GridArrays``; ``times`` and ``zones`` are scratch of shape
+    (3, scratch_size(...)), ``lookups`` 8 ints that carry guesses from one ray
+    to the next.
+
+    Per ray, phases: (1) per family, the zone at each branch end and so the
+    number of crossings (``ray_start``, ``angle_plan``); (2) per family, the
+    crossing times in order -- independent square roots and divisions the CPU
+    can overlap; (3) a three-way merge of the sorted lists, emitting a segment
+    whenever the ray is inside. The rays' loop is here, not around a call per
+    ray: a call passes every array field by field, and the set-up that does
+    not depend on the ray is done once.
     """
-    worst = max_segments(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
-                         grid.phi_edges.shape[0] - 1)
+    rho_edges = grid.rho_edges
+    rho_sq = grid.rho_sq
+    rho_kind = grid.rho_kind
+    theta_full = grid.theta_full
+    n_rho = rho_edges.shape[0] - 1
+    n_theta = grid.theta_edges.shape[0] - 1
+    n_phi = grid.phi_edges.shape[0] - 1
+    worst = max_segments(n_rho, n_theta, n_phi)
+    inf = np.inf
+    # ``flowing`` (below) may start a segment without reading the last one back,
+    # except across the seam of a one-sector circle, where the cell stays the same.
+    can_flow = not (theta_full and n_theta == 1)
     for row in range(first, last):
         if limit - used < worst:
             return used, row
-        used += trace_ray(origins, directions, row, grid, t_max[row], times, zones, lookups, cells,
-                          t_enter, t_exit, used, np.int64(FULL))
+        ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn = ray_start(
+            origins, directions, row, rho_edges, rho_kind)
+        if ir_turn == n_rho:
+            offsets[row + 1] = used  # beyond rho_max and moving away: never inside
+            continue
+        (jt, jt_limit, th_sigma, th_steps, t_axis, kp_limit, kp, t_turn, ph1_steps, ph2_start,
+         ph2_steps, ph_jump) = angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid,
+                                          lookups)
+        # Rounding of a crossing time is ~1e-14 of the scene's size; a crossing found
+        # further in the past than this is one at infinity (see _clamp).
+        slack = 1e-9 * (rho_edges[n_rho] + math.sqrt(ox * ox + oy * oy + oz * oz))
+        t_stop = t_max[row]
+
+        # ---- phase 2: each family's crossing times, in order, up to the final exit.
+        n_r = 0
+        zone = ir
+        t_run = 0.0
+        for _ in range(ir - ir_turn):
+            t_run, t_prev, _ = _clamp(_sphere_time(t_closest, h2, rho_sq[zone], False), t_run,
+                                      t_run, inf, slack, False)
+            zone -= 1
+            times[RHO, n_r + 1] = t_prev
+            zones[RHO, n_r + 1] = zone
+            n_r += 1
+        for _ in range(n_rho - ir_turn):
+            t_run, t_prev, _ = _clamp(_sphere_time(t_closest, h2, rho_sq[zone + 1], True), t_run,
+                                      t_run, inf, slack, False)
+            zone += 1
+            times[RHO, n_r + 1] = t_prev
+            zones[RHO, n_r + 1] = zone
+            n_r += 1
+        if t_stop < times[RHO, n_r]:
+            # Stop at t_max: drop the rho crossings beyond it and leave the region
+            # there (zone n_rho), so the merge ends the last segment at t_max.
+            while n_r > 0 and times[RHO, n_r] >= t_stop:
+                n_r -= 1
+            times[RHO, n_r + 1] = t_stop
+            zones[RHO, n_r + 1] = n_rho
+            n_r += 1
+        # The last rho crossing leaves the region for good: nothing after it matters.
+        t_final = times[RHO, n_r]
+
+        n_t = theta_times(cx, cz, dx, dz, t_closest, 0.0, jt, jt_limit, th_sigma, th_steps,
+                          t_axis, grid.theta_sin, grid.theta_cos, theta_full, t_final, slack,
+                          times, zones)
+        n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, 0.0, kp, kp_limit, t_turn, ph1_steps,
+                        ph2_start, ph2_steps, ph_jump, grid.phi_tan2, grid.phi_nappe, t_final,
+                        slack, times, zones)
+
+        # ---- phase 3: merge the three sorted lists; emit while inside.
+        # Crossings that coincide (a corner where a sphere, a half-plane and a cone
+        # meet) come out a few ulps apart; the slivers between them (shorter than
+        # ``snap``) are cells the ray only touches. They are absorbed into the next
+        # segment, which starts where the last one ended, so coverage stays exact.
+        snap = 1e-3 * slack
+        zones[RHO, 0] = ir
+        zones[THETA, 0] = jt
+        zones[PHI, 0] = kp
+        times[RHO, n_r + 1] = inf
+        times[THETA, n_t + 1] = inf
+        times[PHI, n_p + 1] = inf
+        # Crossings consumed so far per family: the current zone is zones[f, done_f]
+        # and the next crossing times[f, done_f + 1]. Picking the family is two
+        # selects and advancing is a flag add, so the loop has no branch on which
+        # family crosses -- the branch Amanatides & Woo mispredict on every voxel.
+        done_r = 0
+        done_t = 0
+        done_p = 0
+        t_now = 0.0
+        start = used
+        sliver_start = -1.0
+        # ``flowing``: the last step wrote a segment that ends now, so this one, if
+        # inside and no sliver, starts where it ended and is in another cell (a
+        # crossing changes its family's zone; see ``can_flow``).
+        flowing = False
+        for _ in range(n_r + n_t + n_p):
+            t_rho = times[RHO, done_r + 1]
+            t_theta = times[THETA, done_t + 1]
+            t_phi = times[PHI, done_p + 1]
+            t_angle = min(t_theta, t_phi)
+            t_next = max(min(t_rho, t_angle), t_now)
+            ir = zones[RHO, done_r]
+            jt = zones[THETA, done_t]
+            kp = zones[PHI, done_p]
+            inside = 0 <= ir < n_rho and jt < n_theta and 0 <= kp < n_phi
+            if flowing and inside and t_next - t_now > snap:
+                # The common step, with nothing to absorb or extend.
+                _write_segment(cells, t_enter, t_exit, used, ir, jt, kp, t_now, t_next)
+                used += 1
+            elif inside:
+                flowing = False
+                # The segment written last, read back: it ends at ``last_exit``.
+                last_exit = t_exit[used - 1] if used > start else -inf
+                touching = t_now - last_exit <= snap
+                if t_next - t_now <= snap:
+                    if sliver_start < 0.0 and not touching:
+                        sliver_start = t_now
+                else:
+                    if touching:
+                        t_from = last_exit
+                    elif sliver_start >= 0.0:
+                        t_from = sliver_start
+                    else:
+                        t_from = t_now
+                    sliver_start = -1.0
+                    if (touching and ir == cells[used - 1, 0] and jt == cells[used - 1, 1]
+                            and kp == cells[used - 1, 2]):
+                        # The same cell on both sides of a sliver or a zero-length detour
+                        # (tangency, the seam of a one-sector circle): extend, don't repeat.
+                        t_exit[used - 1] = t_next
+                    else:
+                        _write_segment(cells, t_enter, t_exit, used, ir, jt, kp, t_from, t_next)
+                        used += 1
+                    flowing = can_flow
+            else:
+                flowing = False
+                sliver_start = -1.0
+            t_now = t_next
+            # Bitwise ``&`` on booleans, not ``and``: no short-circuit branch.
+            rho_first = t_rho <= t_angle
+            theta_first = t_theta <= t_phi
+            done_r += rho_first
+            done_t += (not rho_first) & theta_first
+            done_p += (not rho_first) & (not theta_first)
+            if done_r == n_r:
+                break  # past rho_max and moving away for good
         offsets[row + 1] = used
     return used, last
+
+
+# The parallel batch kernels. One thread never needs them: it traces by
+# appending (``trace_span``). Each ray writes only its own slice or region, so
+# the output does not depend on the number of threads.
+@jit(parallel=True)
+def bound_counts(origins, directions, grid, bounds):
+    """An upper bound on each ray's segments, into ``bounds``: its set-up only, no stepping.
+
+    A ray never writes more segments than its bound (``ray_bound``), so
+    regions sized by the bounds cannot overflow.
+    """
+    n_rays = origins.shape[0]
+    for block in prange((n_rays + BLOCK - 1) // BLOCK):
+        lookups = np.empty(8, dtype=np.int64)
+        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
+            bounds[row] = ray_bound(origins, directions, row, grid, lookups)
 
 
 # The front half of ``trace_halves`` traces this many segments' worth of rays
@@ -763,7 +743,7 @@ def trace_span_back(first, last, origins, directions, t_max, grid, times, zones,
         if begin == end:
             return top, end
         # ``begin - begin``, not a literal 0: a literal would compile trace_span
-        # and trace_ray once more, specialised on it (about 4 s cold).
+        # once more, specialised on it (about 4 s cold).
         count, _ = trace_span(begin, end, origins, directions, t_max, grid, times, zones, lookups,
                               block_cells, block_enter, block_exit, offsets, begin - begin,
                               block_enter.shape[0])
