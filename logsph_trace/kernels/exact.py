@@ -41,10 +41,10 @@ from .locate import (
     BLOCK,
     TWO_PI,
     azimuth,
-    locate,
+    locate_in,
+    per_log_of,
     phi_zone_near,
     phi_zone_rough,
-    rho_zone,
     theta_zone_rough,
 )
 from .ordered import advance, buffer_of, chain, post, rows_of, take
@@ -446,13 +446,15 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
 
 
 @jit(inline="always")
-def ray_start(origins, directions, row, rho_edges, rho_kind):
+def ray_start(origins, directions, row, rho_edges, rho_kind, per_log):
     """Ray ``row``'s origin and unit direction, its ``line_geometry`` and phase 1 for rho.
 
     Returns the origin, the direction, ``line_geometry``'s five values, then
     the rho zones at the start, ``ir``, and at the closest approach, ``ir_turn``
-    (rho falls until then and rises after, Eq. 9a). ``ir_turn == n_rho``: beyond
-    rho_max and moving away, never inside.
+    (rho falls until then and rises after, Eq. 9a), and the origin's distance
+    from the centre. ``ir_turn == n_rho``: beyond rho_max and moving away,
+    never inside. ``per_log``: ``per_log_of(rho_edges, rho_kind)``, a constant
+    of the grid (a logarithm, so a caller with many rays takes it once).
     """
     ox = origins[row, 0]
     oy = origins[row, 1]
@@ -461,11 +463,12 @@ def ray_start(origins, directions, row, rho_edges, rho_kind):
     dy = directions[row, 1]
     dz = directions[row, 2]
     t_closest, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
-    ir = rho_zone(ox, oy, oz, rho_edges, rho_kind)
+    radius = math.sqrt(ox * ox + oy * oy + oz * oz)
+    ir = locate_in(radius, rho_edges, rho_kind, per_log)
     ir_turn = ir
     if t_closest > 0.0:
-        ir_turn = min(locate(math.sqrt(h2), rho_edges, rho_kind), ir)
-    return ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn
+        ir_turn = min(locate_in(math.sqrt(h2), rho_edges, rho_kind, per_log), ir)
+    return ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn, radius
 
 
 @jit(inline="always")
@@ -502,8 +505,9 @@ def ray_bound(origins, directions, row, grid, lookups):
     ``trace_span``.
     """
     n_rho = grid.rho_edges.shape[0] - 1
-    ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn = ray_start(
-        origins, directions, row, grid.rho_edges, grid.rho_kind)
+    ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn, _ = ray_start(
+        origins, directions, row, grid.rho_edges, grid.rho_kind,
+        per_log_of(grid.rho_edges, grid.rho_kind))
     if ir_turn == n_rho:
         return 0
     (_, _, _, th_steps, t_axis, _, _, _, ph1_steps, _, ph2_steps,
@@ -563,11 +567,12 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
     # ``flowing`` (below) may start a segment without reading the last one back,
     # except across the seam of a one-sector circle, where the cell stays the same.
     can_flow = not (theta_full and n_theta == 1)
+    per_log = per_log_of(rho_edges, rho_kind)
     for row in range(first, last):
         if limit - used < worst:
             return used, row
-        ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn = ray_start(
-            origins, directions, row, rho_edges, rho_kind)
+        ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn, radius = ray_start(
+            origins, directions, row, rho_edges, rho_kind, per_log)
         if ir_turn == n_rho:
             offsets[row + 1] = used  # beyond rho_max and moving away: never inside
             continue
@@ -576,7 +581,7 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
                                           lookups)
         # Rounding of a crossing time is ~1e-14 of the scene's size; a crossing found
         # further in the past than this is one at infinity (see _clamp).
-        slack = 1e-9 * (rho_edges[n_rho] + math.sqrt(ox * ox + oy * oy + oz * oz))
+        slack = 1e-9 * (rho_edges[n_rho] + radius)
         t_stop = t_max[row]
 
         # ---- phase 2: each family's crossing times, in order, up to the final exit.

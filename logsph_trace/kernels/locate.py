@@ -73,7 +73,13 @@ def _last_at_or_below(value, edges):
 @jit
 def locate(value, edges, kind):
     """Zone of ``value`` among strictly increasing ``edges`` (see module doc)."""
-    return locate_in(value, edges, kind, log_cells(edges) if kind == LOG else 0.0)
+    return locate_in(value, edges, kind, per_log_of(edges, kind))
+
+
+@jit(inline="always")
+def per_log_of(edges, kind):
+    """``locate_in``'s ``per_log`` for ``edges`` of spacing ``kind``."""
+    return log_cells(edges) if kind == LOG else 0.0
 
 
 @jit(inline="always")
