@@ -25,11 +25,10 @@ from .exact import (
 )
 from .locate import (
     BLOCK,
-    LOG,
     _last_at_or_below,
     locate_in,
-    log_cells,
     norm3,
+    per_log_of,
     phi_zone,
     phi_zone_near,
     rho_zone,
@@ -1040,7 +1039,7 @@ def mark_radial(points, max_range, grid, free_extent, hits):
     n_rays = points.shape[0]
     rho_edges, rho_kind = grid.rho_edges, grid.rho_kind
     # Log shells' constant logarithm, taken once (it was a third of a ray's time).
-    per_log = log_cells(rho_edges) if rho_kind == LOG else 0.0
+    per_log = per_log_of(rho_edges, rho_kind)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         thread = numba.get_thread_id()
         guesses = np.full(3, -1, dtype=np.int64)
