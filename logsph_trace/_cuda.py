@@ -79,7 +79,8 @@ def _bound_kernel(origins, directions, grid, first, lookups, bounds):
     k = cuda.grid(1)
     row = first + k
     if k < lookups.shape[0] and row < origins.shape[0]:
-        bounds[row] = exact.ray_bound(origins, directions, row, grid, lookups[k])
+        bounds[row] = exact.ray_bound(origins, directions, row, grid,
+                                      locate.per_log_of(grid.rho_edges, grid.rho_kind), lookups[k])
 
 
 @kernel

@@ -497,17 +497,16 @@ def angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid, lookups)
 
 
 @jit
-def ray_bound(origins, directions, row, grid, lookups):
+def ray_bound(origins, directions, row, grid, per_log, lookups):
     """An upper bound on ray ``row``'s segments: its set-up only, no stepping.
 
     The number of its crossings, plus one for a stop at ``t_max``, since each
-    merge step of ``trace_span`` emits at most one segment. ``lookups`` as in
-    ``trace_span``.
+    merge step of ``trace_span`` emits at most one segment. ``per_log`` as in
+    ``ray_start``, ``lookups`` as in ``trace_span``.
     """
     n_rho = grid.rho_edges.shape[0] - 1
     ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn, _ = ray_start(
-        origins, directions, row, grid.rho_edges, grid.rho_kind,
-        per_log_of(grid.rho_edges, grid.rho_kind))
+        origins, directions, row, grid.rho_edges, grid.rho_kind, per_log)
     if ir_turn == n_rho:
         return 0
     (_, _, _, th_steps, t_axis, _, _, _, ph1_steps, _, ph2_steps,
@@ -712,10 +711,11 @@ def bound_counts(origins, directions, grid, bounds):
     regions sized by the bounds cannot overflow.
     """
     n_rays = origins.shape[0]
+    per_log = per_log_of(grid.rho_edges, grid.rho_kind)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         lookups = np.empty(8, dtype=np.int64)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            bounds[row] = ray_bound(origins, directions, row, grid, lookups)
+            bounds[row] = ray_bound(origins, directions, row, grid, per_log, lookups)
 
 
 # The front half of ``trace_halves`` traces this many segments' worth of rays
