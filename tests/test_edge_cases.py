@@ -190,3 +190,35 @@ def test_segment_count_respects_the_loop_bound():
         rng = np.random.default_rng(1)
         traces = lt.trace_many(grid, rng.uniform(-20, 20, (2000, 3)), rng.normal(size=(2000, 3)))
         assert traces.counts.max() <= bound, name
+
+
+@pytest.mark.parametrize("name", sorted(GRIDS))
+def test_the_bound_pass_is_never_below_a_rays_segments(name):
+    # The parallel paths and the GPU size each ray's region by its bound
+    # (exact.ray_bound): one below the segments would overwrite the next ray.
+    # Random rays, near-singular ones, rays from the centre and the y axis
+    # along the edges' directions, and rays stopped at a random t_max.
+    from singular import CLASSES, singular_rays
+
+    from logsph_trace import _validate
+    from logsph_trace.kernels import exact
+
+    grid = GRIDS[name]()
+    rng = np.random.default_rng(sorted(GRIDS).index(name))
+    sets = [(rng.uniform(-1.3, 1.3, (3000, 3)) * grid.rho_max, rng.normal(size=(3000, 3)))]
+    sets += [singular_rays(rng, grid, kind, 20)[:2] for kind in CLASSES]
+    theta = np.resize(grid.theta_edges, 200)
+    phi = np.resize(grid.phi_edges, 200)
+    along = np.stack([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)], 1)
+    sets.append((np.zeros_like(along), along))
+    sets.append((np.c_[np.zeros(200), rng.uniform(-1, 1, 200) * grid.rho_max, np.zeros(200)],
+                 along))
+    origins, directions = _validate.rays(np.concatenate([s[0] for s in sets]),
+                                         np.concatenate([s[1] for s in sets]))
+    bounds = np.empty(len(origins), dtype=np.int64)
+    exact.bound_counts(origins, directions, grid.kernel_args(), bounds)
+    t_max = rng.uniform(0.0, 2.5, len(origins)) * grid.rho_max
+    for stop in (None, t_max):
+        counts = lt.trace_many(grid, origins, directions, t_max=stop, parallel=False).counts
+        assert np.all(bounds >= counts), np.flatnonzero(bounds < counts)[:10]
+    assert np.all(bounds <= exact.max_segments(*grid.shape))
