@@ -74,13 +74,15 @@ def require():
 # ---- kernels --------------------------------------------------------------------------------
 
 @kernel
-def _bound_kernel(origins, directions, grid, first, lookups, bounds):
-    """Ray ``first + k`` (thread k): its bound on segments into ``bounds[first + k]``."""
+def _bound_kernel(origins, directions, grid, per_log, first, lookups, bounds):
+    """Ray ``first + k`` (thread k): its bound on segments into ``bounds[first + k]``.
+
+    ``per_log``: the grid's ``locate.per_log_of``, taken once on the host.
+    """
     k = cuda.grid(1)
     row = first + k
     if k < lookups.shape[0] and row < origins.shape[0]:
-        bounds[row] = exact.ray_bound(origins, directions, row, grid,
-                                      locate.per_log_of(grid.rho_edges, grid.rho_kind), lookups[k])
+        bounds[row] = exact.ray_bound(origins, directions, row, grid, per_log, lookups[k])
 
 
 @kernel
@@ -227,9 +229,11 @@ def _trace(grid, d_origins, d_directions, d_t_max):
     times, zones, lookups = _scratch(size, n_rays)
     in_flight = lookups.shape[0]
 
+    per_log = float(locate.per_log_of(grid.rho_edges, grid.rho_kind))
     bounds = cuda.device_array(max(n_rays, 1), dtype=np.int64)
     for first in range(0, n_rays, in_flight):
-        _launch(_bound_kernel, in_flight, d_origins, d_directions, args, first, lookups, bounds)
+        _launch(_bound_kernel, in_flight, d_origins, d_directions, args, per_log, first, lookups,
+                bounds)
     regions = exclusive_scan(bounds[:n_rays])
     budget = max(int(_free_bytes() * MEMORY_SHARE) // SEGMENT_BYTES, 1)
     if int(regions[n_rays]) <= budget:  # the usual case: one total comes back
