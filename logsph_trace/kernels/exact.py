@@ -475,8 +475,9 @@ def ray_start(origins, directions, row, rho_edges, rho_kind, per_log):
 def angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid, lookups):
     """Phase 1 for theta and phi: the zones at the branch ends, so the crossing counts.
 
-    Returns ``theta_plan``'s four values, then the direction's phi zone, then
-    ``phi_plan``'s six.
+    Returns the start theta zone and the direction's, ``theta_plan``'s sweep
+    sign, crossing count and ``t_axis``, then the direction's phi zone and
+    ``phi_plan``'s six values.
     """
     theta_edges = grid.theta_edges
     jt = theta_zone_rough(ox, oz, theta_edges, grid.theta_sin, grid.theta_cos, grid.theta_kind)
