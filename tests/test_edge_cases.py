@@ -8,8 +8,11 @@ hide a wrong kernel.
 import numpy as np
 import pytest
 from conftest import GRIDS, TANGENT_SLIVER, assert_matches_oracle
+from singular import CLASSES, singular_rays
 
 import logsph_trace as lt
+from logsph_trace import _validate
+from logsph_trace.kernels import exact
 
 
 @pytest.fixture(scope="module")
@@ -198,11 +201,6 @@ def test_the_bound_pass_is_never_below_a_rays_segments(name):
     # (exact.ray_bound): one below the segments would overwrite the next ray.
     # Random rays, near-singular ones, rays from the centre and the y axis
     # along the edges' directions, and rays stopped at a random t_max.
-    from singular import CLASSES, singular_rays
-
-    from logsph_trace import _validate
-    from logsph_trace.kernels import exact
-
     grid = GRIDS[name]()
     rng = np.random.default_rng(sorted(GRIDS).index(name))
     sets = [(rng.uniform(-1.3, 1.3, (3000, 3)) * grid.rho_max, rng.normal(size=(3000, 3)))]
