@@ -34,8 +34,8 @@ def trace_kernel(origins, directions, t_max, grid, times, zones, lookups, cells,
     row = cuda.grid(1)
     if row < origins.shape[0]:
         end, _ = exact.trace_span(row, row + 1, origins, directions, t_max, grid, times[row],
-                                  zones[row], lookups[row], cells, t_enter, t_exit, ends,
-                                  row * worst, (row + 1) * worst)
+                                  zones[row], lookups[row], False, cells, t_enter, t_exit,
+                                  ends, row * worst, (row + 1) * worst)
         counts[row] = end - row * worst
 
 

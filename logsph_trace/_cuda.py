@@ -97,8 +97,8 @@ def _trace_kernel(origins, directions, t_max, grid, first, times, zones, lookups
     if k < lookups.shape[0] and row < origins.shape[0]:
         start = regions[row] - base
         end, _ = exact.trace_span(row, row + 1, origins, directions, t_max, grid, times[:, :, k],
-                                  zones[:, :, k], lookups[k], cells, t_enter, t_exit, ends,
-                                  start, BIG)
+                                  zones[:, :, k], lookups[k], False, cells, t_enter, t_exit,
+                                  ends, start, BIG)
         counts[row] = end - start
 
 

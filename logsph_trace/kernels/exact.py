@@ -497,13 +497,29 @@ def angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid, lookups)
             ph2_steps, ph_jump)
 
 
+# ``trace_span``'s ``bounds_only``: trace the rays, or only bound their segments.
+# NumPy booleans, not Python's: a literal True or False would compile
+# trace_span once more for each (a literal argument gets its own signature).
+TRACE = np.bool_(False)
+BOUND = np.bool_(True)
+
+
+@jit(inline="always")
+def segments_bound(ir, ir_turn, n_rho, th_steps, t_axis, ph1_steps, ph2_steps, ph_jump):
+    """A ray's bound on its segments from its set-up: its crossings, plus one
+    for a stop at ``t_max`` (each merge step emits at most one segment)."""
+    jumps = (1 if t_axis < np.inf else 0) + ph_jump
+    return (ir - ir_turn) + (n_rho - ir_turn) + th_steps + ph1_steps + ph2_steps + jumps + 1
+
+
 @jit
 def ray_bound(origins, directions, row, grid, per_log, lookups):
     """An upper bound on ray ``row``'s segments: its set-up only, no stepping.
 
-    The number of its crossings, plus one for a stop at ``t_max``, since each
-    merge step of ``trace_span`` emits at most one segment. ``per_log`` as in
-    ``ray_start``, ``lookups`` as in ``trace_span``.
+    ``segments_bound`` of one ray, for a GPU thread: the GPU's bound kernel
+    runs this light function rather than all of ``trace_span`` (the CPU's
+    ``bound_counts`` does the opposite, to compile the set-up once).
+    ``per_log`` as in ``ray_start``, ``lookups`` as in ``trace_span``.
     """
     n_rho = grid.rho_edges.shape[0] - 1
     ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn, _ = ray_start(
@@ -512,8 +528,7 @@ def ray_bound(origins, directions, row, grid, per_log, lookups):
         return 0
     (_, _, _, th_steps, t_axis, _, _, _, ph1_steps, _, ph2_steps,
      ph_jump) = angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid, lookups)
-    jumps = (1 if t_axis < np.inf else 0) + ph_jump
-    return (ir - ir_turn) + (n_rho - ir_turn) + th_steps + ph1_steps + ph2_steps + jumps + 1
+    return segments_bound(ir, ir_turn, n_rho, th_steps, t_axis, ph1_steps, ph2_steps, ph_jump)
 
 
 @jit(inline="always")
@@ -533,8 +548,8 @@ def max_segments(n_rho, n_theta, n_phi):
 
 
 @jit
-def trace_span(first, last, origins, directions, t_max, grid, times, zones, lookups, cells, t_enter,
-               t_exit, offsets, used, limit):
+def trace_span(first, last, origins, directions, t_max, grid, times, zones, lookups, bounds_only,
+               cells, t_enter, t_exit, offsets, used, limit):
     """One thread: trace rays first..last-1 (unit directions) in order, appending from
     segment ``used`` on; ray ``row`` up to distance ``t_max[row]`` (``inf``: to the end).
 
@@ -546,6 +561,13 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
     ``GridArrays``; ``times`` and ``zones`` are scratch of shape
     (3, scratch_size(...)), ``lookups`` 8 ints that carry guesses from one ray
     to the next.
+
+    ``bounds_only`` (``TRACE`` or ``BOUND``): with ``BOUND``, each ray gets
+    only its set-up, and ``offsets[row + 1]`` its bound on its segments
+    (``segments_bound``); ``t_max``, the scratch and the segment arrays are
+    not read or written, so they may be empty. The bound pass of the
+    parallel paths (``bound_counts``) runs this way, so the set-up is
+    compiled once on the CPU, not again in a function of its own.
 
     Per ray, phases: (1) per family, the zone at each branch end and so the
     number of crossings (``ray_start``, ``angle_plan``); (2) per family, the
@@ -574,11 +596,16 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
         ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn, radius = ray_start(
             origins, directions, row, rho_edges, rho_kind, per_log)
         if ir_turn == n_rho:
-            offsets[row + 1] = used  # beyond rho_max and moving away: never inside
+            # Beyond rho_max and moving away: never inside.
+            offsets[row + 1] = 0 if bounds_only else used
             continue
         (jt, jt_limit, th_sigma, th_steps, t_axis, kp_limit, kp, t_turn, ph1_steps, ph2_start,
          ph2_steps, ph_jump) = angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid,
                                           lookups)
+        if bounds_only:
+            offsets[row + 1] = segments_bound(ir, ir_turn, n_rho, th_steps, t_axis, ph1_steps,
+                                              ph2_steps, ph_jump)
+            continue
         # Rounding of a crossing time is ~1e-14 of the scene's size; a crossing found
         # further in the past than this is one at infinity (see _clamp).
         slack = 1e-9 * (rho_edges[n_rho] + radius)
@@ -708,15 +735,25 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
 def bound_counts(origins, directions, grid, bounds):
     """An upper bound on each ray's segments, into ``bounds``: its set-up only, no stepping.
 
-    A ray never writes more segments than its bound (``ray_bound``), so
-    regions sized by the bounds cannot overflow.
+    A ray never writes more segments than its bound (``segments_bound``), so
+    regions sized by the bounds cannot overflow. Blocks of rays go through
+    ``trace_span`` with ``BOUND``.
     """
     n_rays = origins.shape[0]
-    per_log = per_log_of(grid.rho_edges, grid.rho_kind)
+    no_limit = np.iinfo(np.int64).max
+    ends = np.empty(n_rays + 1, dtype=np.int64)  # trace_span's offsets: ends[row + 1]
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
-        lookups = np.empty(8, dtype=np.int64)
-        for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            bounds[row] = ray_bound(origins, directions, row, grid, per_log, lookups)
+        first = block * BLOCK
+        last = min(n_rays, first + BLOCK)
+        # Arguments of the types of the serial call's, so that it is the same
+        # compiled trace_span (``first - first``, not a literal 0: see TRACE).
+        trace_span(first, last, origins, directions, np.empty(0, dtype=np.float64), grid,
+                   np.empty((3, 0), dtype=np.float64), np.empty((3, 0), dtype=np.int64),
+                   np.empty(8, dtype=np.int64), BOUND, np.empty((0, 3), dtype=np.int32),
+                   np.empty(0, dtype=np.float64), np.empty(0, dtype=np.float64), ends,
+                   first - first, no_limit)
+        for row in range(first, last):
+            bounds[row] = ends[row + 1]
 
 
 # The front half of ``trace_halves`` traces this many segments' worth of rays
@@ -751,7 +788,7 @@ def trace_span_back(first, last, origins, directions, t_max, grid, times, zones,
         # ``begin - begin``, not a literal 0: a literal would compile trace_span
         # once more, specialised on it (about 4 s cold).
         count, _ = trace_span(begin, end, origins, directions, t_max, grid, times, zones, lookups,
-                              block_cells, block_enter, block_exit, offsets, begin - begin,
+                              TRACE, block_cells, block_enter, block_exit, offsets, begin - begin,
                               block_enter.shape[0])
         top = place_block(block_cells, block_enter, block_exit, count, cells, t_enter, t_exit,
                           offsets, begin, end, top)
@@ -812,8 +849,8 @@ def trace_halves(split, anchor, limit, origins, directions, t_max, grid, cells, 
             )
         else:
             ends[1], reached[1] = trace_span(
-                split, n_rays, origins, directions, t_max, grid, times, zones, lookups, cells,
-                t_enter, t_exit, offsets, anchor, limit,
+                split, n_rays, origins, directions, t_max, grid, times, zones, lookups, TRACE,
+                cells, t_enter, t_exit, offsets, anchor, limit,
             )
     return ends, reached
 
@@ -838,7 +875,7 @@ def trace_chunks(starts, regions, origins, directions, t_max, grid, cells, t_ent
         lookups = np.empty(8, dtype=np.int64)
         ends[chunk], _ = trace_span(
             starts[chunk], starts[chunk + 1], origins, directions, t_max, grid, times, zones,
-            lookups, cells, t_enter, t_exit, offsets, regions[chunk], no_limit,
+            lookups, TRACE, cells, t_enter, t_exit, offsets, regions[chunk], no_limit,
         )
     return ends
 
@@ -877,7 +914,7 @@ def trace_ordered(first_row, last_row, chunk_rays, workers, origins, directions,
                 first, last = rows_of(chunk, first_row, chunk_rays, last_row)
                 source = buffer_of(worker, side, room)
                 end, _ = trace_span(first, last, origins, directions, t_max, grid, times, zones,
-                                    lookups, loose_cells, loose_enter, loose_exit, offsets,
+                                    lookups, TRACE, loose_cells, loose_enter, loose_exit, offsets,
                                     source, source + room)
                 post(chunk, end - source, counts, starts)
             waiting, side, chunk = advance(
