@@ -1,0 +1,113 @@
+"""A/B of the serial exact trace: this working tree against another commit.
+
+    python -m bench.ab 5c4c438             # 100,000 rays, 128^3 cells, 10 rounds
+    python -m bench.ab HEAD --rounds 6     # A/A: how far from 1 the probe itself reads
+    python -m bench.ab main~3 --rays 20000 --cells 64 --threads 1
+
+For kernel changes, whose effect is a few per cent on a machine whose speed
+drifts by more than that. Each round starts one fresh Python for each tree,
+in alternating order (this tree first in even rounds), so drift falls on
+both. A process imports its tree's package, builds the ``bench.run``
+workload, traces it once untimed, then times ``--repeats`` serial
+``trace_many`` calls and reports the best. The other commit is checked out
+in a temporary git worktree, removed afterwards; its Numba cache is its own.
+
+Unlike a probe that imports two copies of the package into one process
+(``bench/results/issue12_loop.md``: such a probe favoured the tree it ran
+from by 1-2% on identical code), the two trees never share a process. Run
+it with REV = HEAD on a clean tree to see what "no change" reads as.
+Prints the per-round ratios and the ratio of the medians (below 1: this
+tree is faster); nothing is written. Needs git.
+"""
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# Run in a fresh Python with one tree's package first on the path. Builds the
+# bench.run workload by itself (numpy only), so that an older tree's bench
+# module cannot change what is timed.
+CHILD = """
+import sys, time
+import numpy as np
+import numba
+numba.set_num_threads({threads})
+import logsph_trace as lt
+rng = np.random.default_rng(0)
+directions = rng.normal(size=({rays}, 3))
+directions /= np.linalg.norm(directions, axis=1)[:, None]
+radial = rng.normal(size=({rays}, 3))
+radial /= np.linalg.norm(radial, axis=1)[:, None]
+origins = radial * 10.0 * rng.random({rays})[:, None] ** (1 / 3)
+grid = lt.Grid(0.1, 10.0, {cells}, {cells}, {cells}, spacing="log")
+segments = len(lt.trace_many(grid, origins, directions, parallel=False).cells)
+best = float("inf")
+for _ in range({repeats}):
+    start = time.perf_counter()
+    lt.trace_many(grid, origins, directions, parallel=False)
+    best = min(best, time.perf_counter() - start)
+print(best, segments)
+"""
+
+
+def run_child(tree, code):
+    """Run ``code`` with ``tree``'s package importable; return (seconds, segments)."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    out = subprocess.run([sys.executable, "-c", code], cwd=tree, env=env, check=True,
+                         capture_output=True, text=True).stdout.split()
+    return float(out[-2]), int(out[-1])
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("rev", help="the commit to compare this working tree against")
+    parser.add_argument("--rounds", type=int, default=10)
+    parser.add_argument("--repeats", type=int, default=5, help="timed calls per process")
+    parser.add_argument("--rays", type=int, default=100_000)
+    parser.add_argument("--cells", type=int, default=128)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args(argv)
+    if min(args.rounds, args.repeats, args.rays, args.cells, args.threads) < 1:
+        parser.error("--rounds, --repeats, --rays, --cells and --threads must be at least 1")
+    code = CHILD.format(threads=args.threads, rays=args.rays, cells=args.cells,
+                        repeats=args.repeats)
+    with tempfile.TemporaryDirectory(prefix="bench-ab-") as scratch:
+        other = Path(scratch) / "tree"
+        subprocess.run(["git", "worktree", "add", "--detach", "--quiet", str(other), args.rev],
+                       cwd=ROOT, check=True)
+        try:
+            trees = {"this tree": ROOT, args.rev: other}
+            print("warming both trees' caches (compiles on a first run) ...", flush=True)
+            segments = {name: run_child(tree, code)[1] for name, tree in trees.items()}
+            if len(set(segments.values())) != 1:
+                print(f"note: the trees write different numbers of segments: {segments}")
+            times = {name: [] for name in trees}
+            for round_ in range(args.rounds):
+                order = list(trees) if round_ % 2 == 0 else list(trees)[::-1]
+                for name in order:
+                    times[name].append(run_child(trees[name], code)[0])
+                ratio = times["this tree"][-1] / times[args.rev][-1]
+                print(f"round {round_ + 1}: this tree {times['this tree'][-1] * 1e3:.1f} ms, "
+                      f"{args.rev} {times[args.rev][-1] * 1e3:.1f} ms, ratio {ratio:.3f}",
+                      flush=True)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(other)], cwd=ROOT,
+                           check=False)
+    medians = {name: statistics.median(values) for name, values in times.items()}
+    ratios = sorted(a / b for a, b in zip(times["this tree"], times[args.rev]))
+    print(f"\n{args.rays:,} rays, {args.cells}^3 cells, {args.threads} thread(s), "
+          f"{args.rounds} rounds, best of {args.repeats} calls per process")
+    print(f"median: this tree {medians['this tree'] * 1e3:.1f} ms, {args.rev} "
+          f"{medians[args.rev] * 1e3:.1f} ms")
+    print(f"this tree / {args.rev}: {medians['this tree'] / medians[args.rev]:.3f} "
+          f"(per round {ratios[0]:.3f} to {ratios[-1]:.3f})")
+
+
+if __name__ == "__main__":
+    main()
