@@ -75,6 +75,10 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if min(args.rounds, args.repeats, args.rays, args.cells, args.threads) < 1:
         parser.error("--rounds, --repeats, --rays, --cells and --threads must be at least 1")
+    known = subprocess.run(["git", "rev-parse", "--verify", "--quiet", f"{args.rev}^{{commit}}"],
+                           cwd=ROOT, capture_output=True)
+    if known.returncode != 0:
+        parser.error(f"{args.rev!r} is not a commit of this repository")
     code = CHILD.format(threads=args.threads, rays=args.rays, cells=args.cells,
                         repeats=args.repeats)
     with tempfile.TemporaryDirectory(prefix="bench-ab-") as scratch:
