@@ -273,7 +273,7 @@ def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
     args = grid.kernel_args()
     size = int(_exact.scratch_size(*grid.shape))
     scratch = (np.empty((3, size), dtype=np.float64), np.empty((3, size), dtype=np.int64),
-               np.empty(8, dtype=np.int64), False)  # False: trace (not bounds only)
+               np.empty(8, dtype=np.int64), _exact.TRACE)
     inputs = (origins, directions, t_max, args)
     return run_batch(EXACT_KERNELS, inputs + scratch, inputs, (origins, directions, args),
                      origins.shape[0], int(_exact.max_segments(*grid.shape)), parallel, buffers)
