@@ -91,6 +91,8 @@ def _trace_kernel(origins, directions, t_max, grid, first, times, zones, lookups
     """Ray ``first + k`` (thread k) into its region, ``regions[row] - base`` on; its count.
 
     ``ends[row + 1]`` gets where its segments end (``trace_span``'s offsets).
+    ``False`` is ``exact.TRACE``: a literal is fine here, where this kernel is
+    the only one that compiles ``trace_span`` for the GPU.
     """
     k = cuda.grid(1)
     row = first + k
