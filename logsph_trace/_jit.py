@@ -11,7 +11,10 @@ kernel against its own file only, but a kernel inlines helpers and freezes
 constants from other files; after an edit or a ``git pull`` that changed only
 those, it would load the stale machine code. So the package's kernels are
 checked against all of its sources (:func:`cache_by_package`): any change to
-the package recompiles them. ``LOGSPH_TRACE_CACHE=0`` in the environment
+the package recompiles them, and so does a change of the Numba settings
+that shape the code but are not in Numba's own key (:func:`codegen_settings`:
+a run under ``NUMBA_ENABLE_PROFILING=1`` or ``NUMBA_BOUNDSCHECK=1`` leaves
+nothing behind that later runs load). ``LOGSPH_TRACE_CACHE=0`` in the environment
 turns the cache off (a read-only install). ``error_model="numpy"`` makes a
 float division by zero return ``inf``/``nan`` as IEEE says instead of
 raising, which the root solvers rely on (a ray parallel to a plane has its
@@ -117,13 +120,31 @@ def _sources_digest(root):
     return digest.hexdigest()
 
 
+# Numba settings that change the machine code of a kernel but are not in
+# the key of Numba's cache index (that holds the signature, the bytecode and
+# the CPU). ``NUMBA_ENABLE_PROFILING=1``, which perf and VTune need, turns on
+# ``NUMBA_DEBUGINFO``, and Numba compiles debug info with every variable kept
+# alive: the exact trace compiled so ran at 1,780 ns a ray against 760
+# (``bench/results/issue12_loop.md``), and without these in the stamp every
+# later run loaded that code from the cache. ``NUMBA_BOUNDSCHECK=1`` the
+# other way round would load kernels that check nothing.
+_CODEGEN_SETTINGS = ("OPT", "DEBUGINFO_DEFAULT", "BOUNDSCHECK", "EXTEND_VARIABLE_LIFETIMES",
+                     "LOOP_VECTORIZE", "SLP_VECTORIZE", "USING_SVML")
+
+
+def codegen_settings():
+    """Return the values of ``_CODEGEN_SETTINGS`` in ``numba.config`` now, as strings."""
+    return tuple(str(getattr(numba.config, name, None)) for name in _CODEGEN_SETTINGS)
+
+
 class _PackageLocator(caching._CacheLocator):
     """Numba's own cache locator for a function, with the package's sources in its stamp.
 
     Numba stores a locator's source stamp in the cache index and throws the
     cached code away when it differs. Its own locators stamp the function's
     file only; this one adds the digest of every source file of the package
-    the function is defined in, and leaves where the cache lives (and
+    the function is defined in, and the Numba settings that change the code
+    (``codegen_settings``), and leaves where the cache lives (and
     everything else) to the locator Numba would have picked from
     ``impl._locator_classes`` (``impl``: the ``CacheImpl`` of Numba or of
     numba-cuda, set per subclass by ``cache_by_package``).
@@ -143,7 +164,7 @@ class _PackageLocator(caching._CacheLocator):
         return self._base.get_cache_path()
 
     def get_source_stamp(self):
-        return (self._base.get_source_stamp(), self._digest)
+        return (self._base.get_source_stamp(), self._digest, codegen_settings())
 
     def get_disambiguator(self):
         return self._base.get_disambiguator()

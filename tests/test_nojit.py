@@ -138,6 +138,47 @@ def test_a_cached_kernel_recompiles_when_a_helper_in_another_file_changes(tmp_pa
     assert run() == ["2", "2", "1", "_PackageLocator"]
 
 
+PEEK = """
+from logsph_trace._jit import jit
+@jit
+def peek(values, at):
+    return values[at]
+"""
+
+
+def test_a_kernel_cached_under_other_numba_settings_is_compiled_again(tmp_path):
+    """Numba's cache index is keyed by the signature, the bytecode and the CPU,
+    not by settings such as ``NUMBA_BOUNDSCHECK``: a kernel cached with bounds
+    checks, or with the debug info ``NUMBA_ENABLE_PROFILING=1`` turns on for
+    perf, would be loaded by every later run, and one cached without them by
+    a run that asks for them. The package's stamp holds those settings."""
+    package = tmp_path / "pkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "main.py").write_text(PEEK)
+    probe = ("import numpy as np, logsph_trace._jit as j; j.cache_by_package('pkg'); "
+             "from pkg.main import peek\n"
+             "try:\n    peek(np.zeros(1), 1); checked = 0\n"
+             "except IndexError:\n    checked = 1\n"
+             "print(checked, peek.stats.cache_hits.get(peek.signatures[0], 0))")
+    base = {key: value for key, value in os.environ.items()
+            if key not in ("NUMBA_BOUNDSCHECK", "NUMBA_DEBUGINFO", "NUMBA_ENABLE_PROFILING")}
+    base.update(LOGSPH_TRACE_CACHE="1", PYTHONDONTWRITEBYTECODE="1")
+
+    def run(**settings):
+        return subprocess.run([sys.executable, "-c", probe], cwd=tmp_path,
+                              env=dict(base, **settings), check=True, capture_output=True,
+                              text=True, timeout=300).stdout.split()
+
+    assert run() == ["0", "0"]
+    assert run() == ["0", "1"]  # the cache serves the same settings
+    assert run(NUMBA_BOUNDSCHECK="1") == ["1", "0"]
+    assert run() == ["0", "0"]  # not the checked code from the cache
+    assert run(NUMBA_ENABLE_PROFILING="1") == ["0", "0"]  # debug info: other code
+    assert run() == ["0", "0"]
+    assert run() == ["0", "1"]
+
+
 def test_the_package_kernels_are_checked_against_all_its_sources():
     from pathlib import Path
 
