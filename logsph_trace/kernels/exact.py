@@ -68,33 +68,45 @@ def _plane_time(t_closest, cx, cz, dx, dz, edge_sin, edge_cos):
 
 
 @jit
-def _clamp(t_candidate, t_run, t_low, t_high, slack, last):
-    """Keep a counted crossing inside its branch: after ``t_low``, at most ``t_high``.
+def _clamp(t_candidate, t_run, t_high):
+    """Keep a counted crossing inside its branch: no earlier than the latest
+    before it, at most ``t_high``.
 
-    ``t_low`` is the crossing kept before it (or the branch's start) and
-    ``t_run`` the latest candidate so far, or that start (a running maximum:
-    clamping each crossing to the one kept before it is clamping it to the
-    latest before it). Returns the new ``t_run``, the crossing kept and the
-    ``t_low`` of the next. Only ``t_run``, a compare and a select, carries
-    from one crossing to the next; the kept value, which the clamp to
-    ``t_high`` and the test below would add to it, hangs off it.
-
-    A crossing a hair before ``t_low`` is a simultaneous one rounded the other
-    way: it happens now. One clearly in the past (by more than ``slack``) is
-    one of two things. A crossing at infinity: the branch end was looked up
-    exactly on a boundary the ray only approaches (a limit direction on a
-    half-plane or cone), and the closed form divides by ~0, landing ~1e16
-    scenes away; it happens at the branch end, i.e. never for the last branch.
-    Or a simultaneous one that rounding of a lookup, magnified by a ray
-    nearly parallel to the boundary, put up to about a scene before ``t_low``
-    (an origin on a half-plane, left at 1e-14 rad, or a sensor on the y axis
-    restarted at the gap's exit): it happens now. Crossings are counted in
-    order, so only the ``last`` of a branch can be at infinity. NaN: now.
+    ``t_run`` is the latest candidate so far, or the branch's start (a
+    running maximum: clamping each crossing to the one kept before it is
+    clamping it to the latest before it). Returns the new ``t_run`` and the
+    crossing kept. A crossing a hair before the one kept before it is a
+    simultaneous one rounded the other way: it happens now. So is a NaN.
+    Only ``t_run``, one ``maxsd``, carries from one crossing to the next.
+    The compares are strict so that they are exactly ``maxsd`` and
+    ``minsd`` (a NaN candidate keeps ``t_run`` either way). With ``>=`` and
+    ``<=`` an equal candidate would be kept instead, which differs only for
+    0.0 against -0.0, but LLVM must honour it: it compiled a compare and a
+    masked move, a longer chain (``bench/results/issue12_loop.md``).
     """
-    at_infinity = last and t_candidate < t_low - 1e9 * slack  # slack is 1e-9 of the scene
-    t_run = t_candidate if t_candidate >= t_run else t_run  # also NaN -> now
-    t_fit = t_run if t_run <= t_high else t_high
-    return t_run, (t_high if at_infinity else t_fit), t_fit
+    t_run = t_candidate if t_candidate > t_run else t_run  # also NaN -> now
+    return t_run, (t_run if t_run < t_high else t_high)
+
+
+@jit
+def _at_infinity(t_candidate, t_low, slack):
+    """Whether a branch's last crossing, ``t_candidate``, is one at infinity.
+
+    ``t_low`` is the crossing kept before it (or the branch's start). A
+    crossing clearly in the past (by more than ``slack``) is one of two
+    things. A crossing at infinity: the branch end was looked up exactly on
+    a boundary the ray only approaches (a limit direction on a half-plane or
+    cone), and the closed form divides by ~0, landing ~1e16 scenes away; it
+    happens at the branch end, i.e. never for the last branch. Or a
+    simultaneous one that rounding of a lookup, magnified by a ray nearly
+    parallel to the boundary, put up to about a scene before ``t_low`` (an
+    origin on a half-plane, left at 1e-14 rad, or a sensor on the y axis
+    restarted at the gap's exit): ``_clamp`` makes it happen now.
+    Crossings are counted in order, so only the last of a branch can be at
+    infinity, and the loops test it once, after the branch: tested on every
+    crossing, it cost the trace 5% (``bench/results/issue12_loop.md``).
+    """
+    return t_candidate < t_low - 1e9 * slack  # slack is 1e-9 of the scene
 
 
 @jit
@@ -288,22 +300,27 @@ def theta_times(cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, th_sigma, th_s
     zone = jt
     t_run = t_start
     t_low = t_start
+    t_candidate = t_start
     for step in range(th_steps):
         edge = _theta_edge_ahead(zone, th_sigma, n_theta, theta_full)
-        t_run, t_prev, t_low = _clamp(
-            _plane_time(t_closest, cx, cz, dx, dz, theta_sin[edge], theta_cos[edge]),
-            t_run, t_low, np.inf, slack, step == th_steps - 1,
-        )
-        if t_prev > t_final:
-            break
+        t_candidate = _plane_time(t_closest, cx, cz, dx, dz, theta_sin[edge], theta_cos[edge])
+        t_low = t_run
+        t_run, _ = _clamp(t_candidate, t_run, np.inf)
+        if t_run > t_final:
+            return n_t
         zone += th_sigma
         if zone == n_zones_theta:
             zone = 0
         elif zone < 0:
             zone = n_zones_theta - 1
-        times[THETA, n_t + 1] = t_prev
+        times[THETA, n_t + 1] = t_run
         zones[THETA, n_t + 1] = zone
         n_t += 1
+    if th_steps > 0 and _at_infinity(t_candidate, t_low, slack):
+        # The last crossing is at infinity, the sweep's end (``t_high`` is inf).
+        if np.inf > t_final:
+            return n_t - 1
+        times[THETA, n_t] = np.inf
     return n_t
 
 
@@ -391,28 +408,34 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
     ``t_prev``, ``zone``, whether a crossing past ``t_final`` ended the list).
     """
     row = times[PHI]
-    done = False
     step = 0
     t_run = t_prev
     t_low = t_prev
-    while step < steps and not done:
+    t_candidate = t_prev
+    while step < steps:
         count = min(CONE_BLOCK, steps - step)
         _cone_times(zone + 1 if sigma > 0 else zone - count + 1, count, phi_tan2, phi_nappe, row,
                     n_p + 1, t_closest, cy, dy, cab, ca2, b2, first_branch, branch_start, slack)
         if sigma < 0:
             _reverse(row, n_p + 1, count)
         for _ in range(count):
-            t_run, t_prev, t_low = _clamp(row[n_p + 1], t_run, t_low, t_high, slack,
-                                          step == steps - 1)
+            t_candidate = row[n_p + 1]
+            t_low = t_prev
+            t_run, t_prev = _clamp(t_candidate, t_run, t_high)
             if t_prev > t_final:
-                done = True
-                break
+                return n_p, t_prev, zone, True
             zone += sigma
             times[PHI, n_p + 1] = t_prev
             zones[PHI, n_p + 1] = zone
             n_p += 1
             step += 1
-    return n_p, t_prev, zone, done
+    if steps > 0 and _at_infinity(t_candidate, t_low, slack):
+        # The last crossing is at infinity: it happens at the branch's end.
+        t_prev = t_high
+        if t_prev > t_final:
+            return n_p - 1, t_prev, zone - sigma, True
+        times[PHI, n_p] = t_prev
+    return n_p, t_prev, zone, False
 
 
 @jit(inline="always")
@@ -428,7 +451,7 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
         phi_nappe, t_closest, cy, dy, cab, ca2, b2, t_final, slack, times, zones,
     )
     if ph_jump == 1:
-        _, t_prev, _ = _clamp(t_turn, t_prev, t_prev, inf, slack, False)
+        _, t_prev = _clamp(t_turn, t_prev, inf)
         if t_prev > t_final:
             done = True
         else:
@@ -607,7 +630,7 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
                                               ph2_steps, ph_jump)
             continue
         # Rounding of a crossing time is ~1e-14 of the scene's size; a crossing found
-        # further in the past than this is one at infinity (see _clamp).
+        # further in the past than this is one at infinity (see _at_infinity).
         slack = 1e-9 * (rho_edges[n_rho] + radius)
         t_stop = t_max[row]
 
@@ -616,15 +639,14 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
         zone = ir
         t_run = 0.0
         for _ in range(ir - ir_turn):
-            t_run, t_prev, _ = _clamp(_sphere_time(t_closest, h2, rho_sq[zone], False), t_run,
-                                      t_run, inf, slack, False)
+            t_run, t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone], False), t_run, inf)
             zone -= 1
             times[RHO, n_r + 1] = t_prev
             zones[RHO, n_r + 1] = zone
             n_r += 1
         for _ in range(n_rho - ir_turn):
-            t_run, t_prev, _ = _clamp(_sphere_time(t_closest, h2, rho_sq[zone + 1], True), t_run,
-                                      t_run, inf, slack, False)
+            t_run, t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone + 1], True), t_run,
+                                   inf)
             zone += 1
             times[RHO, n_r + 1] = t_prev
             zones[RHO, n_r + 1] = zone
