@@ -176,10 +176,17 @@ def to_device(array):
 
 
 def _device_grid(grid):
-    """Return the grid's ``GridArrays`` with its arrays on the device (cached on the grid)."""
+    """Return the grid's ``GridArrays`` with its arrays on the device (cached on the grid).
+
+    The cone arrays go without the CPU's padding: a GPU thread times only
+    the cones it needs (``exact._branch_times``), where a CPU core computes
+    a whole vector of them at no extra cost.
+    """
     cached = getattr(grid, "_cuda_args", None)
     if cached is None:
         args = grid.kernel_args()
+        cones = args.phi_edges.shape[0]
+        args = args._replace(phi_tan2=args.phi_tan2[:cones], phi_nappe=args.phi_nappe[:cones])
         cached = type(args)(*[cuda.to_device(np.ascontiguousarray(a))
                               if isinstance(a, np.ndarray) else a for a in args])
         object.__setattr__(grid, "_cuda_args", cached)

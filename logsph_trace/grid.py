@@ -272,16 +272,22 @@ class Grid:
 
     # ---- arrays the kernels take ------------------------------------------
     def kernel_args(self):
-        """Return the grid as the kernels take it: one ``GridArrays`` bundle (cached)."""
+        """Return the grid as the kernels take it: one ``GridArrays`` bundle (cached).
+
+        The cone arrays (``phi_tan2``, ``phi_nappe``) end in
+        ``CONE_BLOCK - 1`` zeros, for the exact kernel's blocks of cones.
+        """
         cached = getattr(self, "_kernel_args", None)
         if cached is None:
             theta = self.theta_edges
             phi = self.phi_edges
+            pad = np.zeros(_locate.CONE_BLOCK - 1)
             cached = _locate.GridArrays(
                 self.rho_edges, self.rho_edges**2, self.rho_kind,
                 theta, _each(math.sin, theta), _each(math.cos, theta), self.theta_kind,
                 self.theta_full,
-                phi, _each(math.tan, phi) ** 2, np.sign(phi), self.phi_kind,
+                phi, np.concatenate([_each(math.tan, phi) ** 2, pad]),
+                np.concatenate([np.sign(phi), pad]), self.phi_kind,
                 _each(math.sin, phi), _each(math.cos, phi),
             )
             object.__setattr__(self, "_kernel_args", cached)

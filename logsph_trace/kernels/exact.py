@@ -39,6 +39,7 @@ from numba import prange
 from .._jit import jit
 from .locate import (
     BLOCK,
+    CONE_BLOCK,
     TWO_PI,
     azimuth,
     locate_in,
@@ -138,8 +139,10 @@ def scratch_size(n_rho, n_theta, n_phi):
     fewer than n_theta + 1 zones plus a wrap, or one jump; phi: two monotone
     branches, 2 (n_phi + 1), plus one relocation at the origin. Two more slots:
     slot 0 holds the starting zone, and an ``inf`` sentinel ends each list.
+    ``CONE_BLOCK - 1`` more take the lanes of a block of cones past the last
+    crossing (``_branch_times``).
     """
-    return max(2 * (n_rho + 1) + 1, n_theta + 2, 2 * (n_phi + 1) + 1) + 2
+    return max(2 * (n_rho + 1) + 1, n_theta + 2, 2 * (n_phi + 1) + 1) + 2 + CONE_BLOCK - 1
 
 
 @jit
@@ -328,7 +331,8 @@ def theta_times(cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, th_sigma, th_s
 def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, cab, ca2, b2,
                 first_branch, branch_start, slack):
     """Crossings of the elevation cones ``low`` .. ``low + count - 1``, each on its own
-    nappe and within the current branch, into ``row[first:first + count]``.
+    nappe and within the current branch, into ``row[first:first + count]``
+    (a padding cone, of ``tan2`` and ``nappe`` 0, gives any number).
 
     ``(c_y + u d_y)^2 = tan(phi)^2 ((c_x + u d_x)^2 + (c_z + u d_z)^2)``, with
     ``u = t - t_closest`` measured from the line's closest point ``c``, solved
@@ -350,6 +354,8 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
     roots or divisions per instruction). On the benchmark machine that took
     a crossing from 13.5 to 9.9 ns, although it also computes those past
     the ray's exit. ``phi_times`` reverses a descending branch in place.
+    ``_branch_times`` passes a whole block as ``count`` where the arrays are
+    padded for it, so that LLVM's scalar loop for a remainder never runs.
     """
     tan2s = phi_tan2[low:low + count]
     nappes = phi_nappe[low:low + count]
@@ -388,23 +394,19 @@ def _reverse(row, first, count):
         row[first + count - 1 - k] = a
 
 
-# Cones timed at a time by ``_branch_times``: a branch's crossings past the
-# ray's exit are never used, so they are computed in blocks and the blocks
-# stop at the first crossing past it.
-CONE_BLOCK = 8
-
-
 @jit(inline="always")
 def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_start, phi_tan2,
-                  phi_nappe, t_closest, cy, dy, cab, ca2, b2, t_final, slack, times, zones):
+                  phi_nappe, lanes, t_closest, cy, dy, cab, ca2, b2, t_final, slack, times, zones):
     """The ``steps`` cone crossings of one monotone branch of phi, from ``zone`` in
     direction ``sigma``, clamped into ``[t_prev, t_high]``, appended to row
     ``PHI`` after its first ``n_p``; stops at the first past ``t_final``.
 
+    A branch's crossings past the ray's exit are never used, so
     ``_cone_times`` times the cones ``CONE_BLOCK`` at a time, in the order
     the ray meets them (a descending block is reversed in place). Clamped
     crossings never decrease, so none after the first one past ``t_final``
-    is used, and the blocks after it are not computed. Returns (``n_p``,
+    is used, and the blocks after it are not computed. Each block computes
+    at least ``lanes`` cones (see ``phi_times``). Returns (``n_p``,
     ``t_prev``, ``zone``, whether a crossing past ``t_final`` ended the list).
     """
     row = times[PHI]
@@ -414,8 +416,9 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
     t_candidate = t_prev
     while step < steps:
         count = min(CONE_BLOCK, steps - step)
-        _cone_times(zone + 1 if sigma > 0 else zone - count + 1, count, phi_tan2, phi_nappe, row,
-                    n_p + 1, t_closest, cy, dy, cab, ca2, b2, first_branch, branch_start, slack)
+        _cone_times(zone + 1 if sigma > 0 else zone - count + 1, max(count, lanes), phi_tan2,
+                    phi_nappe, row, n_p + 1, t_closest, cy, dy, cab, ca2, b2, first_branch,
+                    branch_start, slack)
         if sigma < 0:
             _reverse(row, n_p + 1, count)
         for _ in range(count):
@@ -440,15 +443,26 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
 
 @jit(inline="always")
 def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, ph1_steps,
-              ph2_start, ph2_steps, ph_jump, phi_tan2, phi_nappe, t_final, slack, times, zones):
-    """Phase 2 for phi: as ``theta_times``, into row ``PHI``; returns their number."""
+              ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones):
+    """Phase 2 for phi: as ``theta_times``, into row ``PHI``; returns their number.
+
+    ``grid``: the grid's ``GridArrays``. Where its cone arrays are padded
+    (the CPU's), every block of cones computes all ``CONE_BLOCK`` lanes: one
+    vector pass, without the scalar loop LLVM adds for a partial block
+    (measured in ``bench/results/issue12_loop.md``). The number comes from
+    the arrays, not the constant: a loop of a fixed 8 LLVM unrolls into
+    scalar code. Unpadded (the GPU's), a block times only the cones it needs.
+    """
     inf = np.inf
+    phi_tan2 = grid.phi_tan2
+    phi_nappe = grid.phi_nappe
+    lanes = phi_tan2.shape[0] - grid.phi_edges.shape[0] + 1
     b2 = dx * dx + dz * dz
     cab = cx * dx + cz * dz
     ca2 = cx * cx + cz * cz
     n_p, t_prev, zone, done = _branch_times(
         kp, 1 if ph2_start > kp else -1, ph1_steps, t_start, t_turn, 0, True, t_start, phi_tan2,
-        phi_nappe, t_closest, cy, dy, cab, ca2, b2, t_final, slack, times, zones,
+        phi_nappe, lanes, t_closest, cy, dy, cab, ca2, b2, t_final, slack, times, zones,
     )
     if ph_jump == 1:
         _, t_prev = _clamp(t_turn, t_prev, inf)
@@ -462,8 +476,8 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
     if not done:
         n_p, _, _, _ = _branch_times(
             zone, 1 if kp_limit > zone else -1, ph2_steps, t_prev, inf, n_p, False,
-            t_turn if t_turn < inf else t_start, phi_tan2, phi_nappe, t_closest, cy, dy, cab, ca2,
-            b2, t_final, slack, times, zones,
+            t_turn if t_turn < inf else t_start, phi_tan2, phi_nappe, lanes, t_closest, cy, dy,
+            cab, ca2, b2, t_final, slack, times, zones,
         )
     return n_p
 
@@ -666,8 +680,7 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
                           t_axis, grid.theta_sin, grid.theta_cos, theta_full, t_final, slack,
                           times, zones)
         n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, 0.0, kp, kp_limit, t_turn, ph1_steps,
-                        ph2_start, ph2_steps, ph_jump, grid.phi_tan2, grid.phi_nappe, t_final,
-                        slack, times, zones)
+                        ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones)
 
         # ---- phase 3: merge the three sorted lists; emit while inside.
         # Crossings that coincide (a corner where a sphere, a half-plane and a cone

@@ -30,6 +30,11 @@ HALF_PI = 0.5 * np.pi
 
 # Rays per block in the batch kernels: each block allocates its scratch once.
 BLOCK = 256
+# Elevation cones timed at a time by the exact kernel's phi crossings
+# (``exact._branch_times``). On the CPU a grid's cone arrays carry
+# ``CONE_BLOCK - 1`` zeros past the last cone (``GridArrays``), so that every
+# block computes all of its lanes in one vector pass from any first cone.
+CONE_BLOCK = 8
 
 
 class GridArrays(NamedTuple):
@@ -48,8 +53,8 @@ class GridArrays(NamedTuple):
     theta_kind: int
     theta_full: bool
     phi_edges: np.ndarray
-    phi_tan2: np.ndarray  # tan(phi_edges) ** 2
-    phi_nappe: np.ndarray  # sign(phi_edges): the cone's half
+    phi_tan2: np.ndarray  # tan(phi_edges) ** 2, then CONE_BLOCK - 1 zeros on the CPU
+    phi_nappe: np.ndarray  # sign(phi_edges): the cone's half; padded the same
     phi_kind: int
     phi_sin: np.ndarray
     phi_cos: np.ndarray

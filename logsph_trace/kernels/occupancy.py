@@ -155,8 +155,7 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
                       t_axis, grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times,
                       zones)
     n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, ph1_steps,
-                    ph2_start, ph2_steps, ph_jump, grid.phi_tan2, grid.phi_nappe, t_final, slack,
-                    times, zones)
+                    ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones)
     zones[THETA, 0] = jt
     zones[PHI, 0] = kp
     times[THETA, n_t + 1] = np.inf
