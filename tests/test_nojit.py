@@ -112,24 +112,38 @@ def read():
 """
 
 
+def _package(tmp_path, main, probe):
+    """A package ``pkg`` in ``tmp_path`` whose ``main.py`` is ``main``, its kernels
+    cached by the package's locator. Returns the package's folder and
+    ``run(**settings)``: ``probe`` in a fresh interpreter there, with those
+    environment variables (and no Numba setting of the caller's), as the
+    words it prints."""
+    package = tmp_path / "pkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "main.py").write_text(main)
+    code = "import logsph_trace._jit as j; j.cache_by_package('pkg')\n" + probe
+    base = {key: value for key, value in os.environ.items()
+            if key not in ("NUMBA_BOUNDSCHECK", "NUMBA_DEBUGINFO", "NUMBA_ENABLE_PROFILING")}
+    base.update(LOGSPH_TRACE_CACHE="1", PYTHONDONTWRITEBYTECODE="1")
+
+    def run(**settings):
+        return subprocess.run([sys.executable, "-c", code], cwd=tmp_path,
+                              env=dict(base, **settings), check=True, capture_output=True,
+                              text=True, timeout=300).stdout.split()
+
+    return package, run
+
+
 def test_a_cached_kernel_recompiles_when_a_helper_in_another_file_changes(tmp_path):
     """Numba alone checks a cached kernel against its own file, so ``read`` would
     keep returning the old ``VALUE`` it inlined from ``helper.py``; the package's
     locator checks it against every source file of its package."""
-    package = tmp_path / "pkg"
-    package.mkdir()
-    (package / "__init__.py").write_text("")
-    (package / "main.py").write_text(STALE_CALLER)
-    probe = ("import logsph_trace._jit as j; j.cache_by_package('pkg'); "
-             "from pkg.main import read; from pkg.helper import value; "
-             "print(read(), value(), read.stats.cache_hits.get(read.signatures[0], 0), "
-             "type(read._cache._impl.locator).__name__)")
-    env = dict(os.environ, LOGSPH_TRACE_CACHE="1", PYTHONDONTWRITEBYTECODE="1")
-
-    def run():
-        return subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, env=env, check=True,
-                              capture_output=True, text=True, timeout=300).stdout.split()
-
+    package, run = _package(
+        tmp_path, STALE_CALLER,
+        "from pkg.main import read; from pkg.helper import value; "
+        "print(read(), value(), read.stats.cache_hits.get(read.signatures[0], 0), "
+        "type(read._cache._impl.locator).__name__)")
     (package / "helper.py").write_text(STALE_HELPER.format(value=1))
     assert run() == ["1", "1", "0", "_PackageLocator"]
     assert run() == ["1", "1", "1", "_PackageLocator"]  # the cache still serves
@@ -152,24 +166,12 @@ def test_a_kernel_cached_under_other_numba_settings_is_compiled_again(tmp_path):
     checks, or with the debug info ``NUMBA_ENABLE_PROFILING=1`` turns on for
     perf, would be loaded by every later run, and one cached without them by
     a run that asks for them. The package's stamp holds those settings."""
-    package = tmp_path / "pkg"
-    package.mkdir()
-    (package / "__init__.py").write_text("")
-    (package / "main.py").write_text(PEEK)
-    probe = ("import numpy as np, logsph_trace._jit as j; j.cache_by_package('pkg'); "
-             "from pkg.main import peek\n"
-             "try:\n    peek(np.zeros(1), 1); checked = 0\n"
-             "except IndexError:\n    checked = 1\n"
-             "print(checked, peek.stats.cache_hits.get(peek.signatures[0], 0))")
-    base = {key: value for key, value in os.environ.items()
-            if key not in ("NUMBA_BOUNDSCHECK", "NUMBA_DEBUGINFO", "NUMBA_ENABLE_PROFILING")}
-    base.update(LOGSPH_TRACE_CACHE="1", PYTHONDONTWRITEBYTECODE="1")
-
-    def run(**settings):
-        return subprocess.run([sys.executable, "-c", probe], cwd=tmp_path,
-                              env=dict(base, **settings), check=True, capture_output=True,
-                              text=True, timeout=300).stdout.split()
-
+    _, run = _package(
+        tmp_path, PEEK,
+        "import numpy as np\nfrom pkg.main import peek\n"
+        "try:\n    peek(np.zeros(1), 1); checked = 0\n"
+        "except IndexError:\n    checked = 1\n"
+        "print(checked, peek.stats.cache_hits.get(peek.signatures[0], 0))")
     assert run() == ["0", "0"]
     assert run() == ["0", "1"]  # the cache serves the same settings
     assert run(NUMBA_BOUNDSCHECK="1") == ["1", "0"]
