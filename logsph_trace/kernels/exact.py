@@ -105,7 +105,8 @@ def _at_infinity(t_candidate, t_low, slack):
     restarted at the gap's exit): ``_clamp`` makes it happen now.
     Crossings are counted in order, so only the last of a branch can be at
     infinity, and the loops test it once, after the branch: tested on every
-    crossing, it cost the trace 5% (``bench/results/issue12_loop.md``).
+    crossing, it had cost the trace a few per cent
+    (``bench/results/issue12_loop.md``).
     """
     return t_candidate < t_low - 1e9 * slack  # slack is 1e-9 of the scene
 
@@ -320,7 +321,8 @@ def theta_times(cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, th_sigma, th_s
         zones[THETA, n_t + 1] = zone
         n_t += 1
     if th_steps > 0 and _at_infinity(t_candidate, t_low, slack):
-        # The last crossing is at infinity, the sweep's end (``t_high`` is inf).
+        # The last crossing is at infinity: it happens at the sweep's end,
+        # which is at infinity too, so past t_final unless that is infinite.
         if np.inf > t_final:
             return n_t - 1
         times[THETA, n_t] = np.inf
