@@ -779,15 +779,21 @@ def bound_counts(origins, directions, grid, bounds):
     n_rays = origins.shape[0]
     no_limit = np.iinfo(np.int64).max
     ends = np.empty(n_rays + 1, dtype=np.int64)  # trace_span's offsets: ends[row + 1]
+    # What BOUND neither reads nor writes, empty and shared by every block;
+    # each of its arguments has the type of the serial call's, so that it is
+    # the same compiled trace_span.
+    no_t_max = np.empty(0, dtype=np.float64)
+    no_times = np.empty((3, 0), dtype=np.float64)
+    no_zones = np.empty((3, 0), dtype=np.int64)
+    no_cells = np.empty((0, 3), dtype=np.int32)
+    no_enter = np.empty(0, dtype=np.float64)
+    no_exit = np.empty(0, dtype=np.float64)
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         first = block * BLOCK
         last = min(n_rays, first + BLOCK)
-        # Arguments of the types of the serial call's, so that it is the same
-        # compiled trace_span (``first - first``, not a literal 0: see TRACE).
-        trace_span(first, last, origins, directions, np.empty(0, dtype=np.float64), grid,
-                   np.empty((3, 0), dtype=np.float64), np.empty((3, 0), dtype=np.int64),
-                   np.empty(8, dtype=np.int64), BOUND, np.empty((0, 3), dtype=np.int32),
-                   np.empty(0, dtype=np.float64), np.empty(0, dtype=np.float64), ends,
+        # ``first - first``, not a literal 0 (see TRACE).
+        trace_span(first, last, origins, directions, no_t_max, grid, no_times, no_zones,
+                   np.empty(8, dtype=np.int64), BOUND, no_cells, no_enter, no_exit, ends,
                    first - first, no_limit)
         for row in range(first, last):
             bounds[row] = ends[row + 1]
