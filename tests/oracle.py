@@ -271,3 +271,96 @@ def first_occupied(traces, ray_weights, log_odds, unknown=0.0, free_below=0.5,
             out[cell] = out.get(cell, 0.0) + ray_weights[ray] * p * clear
             clear *= 1.0 - p
     return out
+
+
+def _outside_cell(points, cells, rho_edges, theta_edges, phi_edges):
+    """How far each point lies outside its closed cell (0 inside): the largest of
+    its distances beyond the cell's spheres, half-planes' planes and cones, each
+    measured as a length (an angle times the radius it turns at)."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    rho = np.sqrt(x * x + y * y + z * z)
+    flat = np.sqrt(x * x + z * z)
+    i, j, k = cells[:, 0], cells[:, 1], cells[:, 2]
+    radial = np.maximum(np.maximum(rho_edges[i] - rho, rho - rho_edges[i + 1]), 0.0)
+    # Azimuth past the sector, either way round, as a turn of at most pi / 2.
+    past = np.mod(np.arctan2(x, z) - theta_edges[j], 2 * np.pi)
+    width = theta_edges[j + 1] - theta_edges[j]
+    beyond = np.where(past <= width, 0.0, np.minimum(past - width, 2 * np.pi - past))
+    azimuthal = flat * np.sin(np.minimum(beyond, np.pi / 2))
+    phi = np.arctan2(y, flat)
+    above = np.maximum(np.maximum(phi_edges[k] - phi, phi - phi_edges[k + 1]), 0.0)
+    polar = rho * np.sin(np.minimum(above, np.pi / 2))
+    return np.maximum(np.maximum(radial, azimuthal), polar)
+
+
+def _depth_in_region(points, rho_edges, theta_edges, phi_edges):
+    """Distance of each point from the region's boundary (any sign): 0 on it."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    rho = np.sqrt(x * x + y * y + z * z)
+    flat = np.sqrt(x * x + z * z)
+    depth = np.abs(rho - rho_edges[-1])
+    if rho_edges[0] > 0.0:
+        depth = np.minimum(depth, np.abs(rho - rho_edges[0]))
+    if theta_edges[-1] - theta_edges[0] < 2 * np.pi - 1e-12:
+        for edge in (theta_edges[0], theta_edges[-1]):
+            turn = np.abs(np.mod(np.arctan2(x, z) - edge + np.pi, 2 * np.pi) - np.pi)
+            depth = np.minimum(depth, flat * np.sin(np.minimum(turn, np.pi / 2)))
+    phi = np.arctan2(y, flat)
+    for edge in (phi_edges[0], phi_edges[-1]):
+        if abs(edge) < np.pi / 2 - 1e-12:
+            depth = np.minimum(depth, rho * np.sin(np.minimum(np.abs(phi - edge), np.pi / 2)))
+    return depth
+
+
+def _union(t_enter, t_exit, tol):
+    merged = []
+    for start, end in sorted(zip(np.asarray(t_enter).tolist(), np.asarray(t_exit).tolist())):
+        if merged and start <= merged[-1][1] + tol:
+            merged[-1][1] = max(merged[-1][1], end)
+        else:
+            merged.append([start, end])
+    return merged
+
+
+def within_faces(got, origin, direction, rho_edges, theta_edges, phi_edges, scale, rel=1e-9,
+                 t_max=np.inf):
+    """None when a trace is right for a ray that may lie in a boundary, else a message.
+
+    A ray lying in a half-plane or on a cone (its whole stretch there, not
+    just a point) is in the cells on both sides at once, and rounding picks
+    one; the oracle's extended precision may pick the other, even cell by
+    cell. So instead of the oracle's cells: every segment (at 1%, 50% and
+    99% of it) lies in the closure of its cell to within ``rel * scale``, and
+    the stretches covered differ from the oracle's (up to ``t_max``) only
+    where the ray runs along the region's own boundary, within ``rel *
+    scale`` of it.
+    """
+    tol = rel * scale
+    cells, t_enter, t_exit = (np.asarray(a) for a in got)
+    origin = np.asarray(origin, dtype=np.float64)
+    direction = np.asarray(direction, dtype=np.float64)
+    if cells.shape[0]:
+        at = np.concatenate([t_enter + f * (t_exit - t_enter) for f in (0.01, 0.5, 0.99)])
+        points = origin + at[:, None] * direction
+        outside = _outside_cell(points, np.tile(cells, (3, 1)), rho_edges, theta_edges, phi_edges)
+        worst = int(np.argmax(outside))
+        if outside[worst] > tol:
+            row = worst % cells.shape[0]
+            return (f"segment {row} (cell {cells[row].tolist()}, t {t_enter[row]:.6g} to "
+                    f"{t_exit[row]:.6g}) lies {outside[worst]:.3e} outside its cell")
+    want = oracle_trace(origin, direction, rho_edges, theta_edges, phi_edges)
+    covered = _union(t_enter, t_exit, tol)
+    before = want[1] < t_max
+    reference = _union(want[1][before], np.minimum(want[2][before], t_max), tol)
+    breaks = sorted({t for stretch in covered + reference for t in stretch})
+    for start, end in zip(breaks[:-1], breaks[1:]):
+        middle = 0.5 * (start + end)
+        inside = [any(a <= middle <= b for a, b in stretches) for stretches in (covered,
+                                                                                reference)]
+        if end - start > tol and inside[0] != inside[1]:
+            depth = _depth_in_region((origin + middle * direction)[None], rho_edges,
+                                     theta_edges, phi_edges)[0]
+            if depth > tol:
+                return (f"t {start:.6g} to {end:.6g} is {'' if inside[0] else 'not '}covered "
+                        f"but the oracle says otherwise, {depth:.3e} from the region's boundary")
+    return None

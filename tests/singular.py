@@ -118,3 +118,64 @@ def singular_rays(rng, grid, kind, n_rays, offsets=OFFSETS):
             directions.append(direction)
             used.append(offset)
     return np.array(origins), np.array(directions), np.array(used)
+
+
+# ---- Rays lying in faces ---------------------------------------------------
+# A line through the centre lies on the cone of its elevation and in the
+# vertical plane of its azimuth; when those are edges, the line runs along a
+# face of the grid (past the centre, along the opposite face). A line through
+# the y axis lies in the plane of its azimuth. Lines of these kinds are built
+# exactly, as far as floats allow, from power-of-two multiples of unit vectors
+# along the grid's edges, where the normalised direction is often collinear
+# with the eye to the last bit (o x d == 0) and otherwise within a few ulps.
+
+FACE_FAMILIES = ("own_ray", "near_own_ray", "across_the_axis", "edge_directions")
+
+
+def edge_unit(rng, grid, on_edge=0.6):
+    """A unit vector whose elevation and azimuth are each a grid edge with
+    probability ``on_edge``, and otherwise random in the grid's ranges."""
+    phi = rng.uniform(*grid.phi_range)
+    if rng.random() < on_edge:
+        phi = grid.phi_edges[rng.integers(0, grid.phi_edges.shape[0])]
+    theta = rng.uniform(*grid.theta_range)
+    if rng.random() < on_edge:
+        theta = grid.theta_edges[rng.integers(0, grid.theta_edges.shape[0])]
+    return np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+
+
+def face_ray(rng, grid, family):
+    """One ray (origin, direction) of ``family`` (``FACE_FAMILIES``).
+
+    ``own_ray``: the eye at a power of two times an edge unit vector (in the
+    egocentric gap or out to past rho_max), looking along that vector's line,
+    away from the centre or through it. ``near_own_ray``: the same, through
+    the centre, tilted by 1e-17 ... 1e-13 rad. ``across_the_axis``: the eye
+    as in ``own_ray``, looking across the y axis in its own vertical plane.
+    ``edge_directions``: an eye anywhere along an edge unit vector, looking
+    along another one. The directions are left unnormalised.
+    """
+    unit = edge_unit(rng, grid)
+    inner = grid.rho_min if grid.rho_min > 0.0 else grid.rho_edges[1]
+    eye = 2.0 ** (np.floor(np.log2(inner)) + rng.integers(-3, 5)) * unit
+    # Directions are differences of points, as a sensor's are: rounding
+    # leaves them off the exact line by a few ulps as often as not.
+    reach = rng.uniform(0.2, 1.3) * grid.rho_max * rng.choice([-1.0, 1.0])
+    if family == "own_ray":
+        return eye, (eye + reach * unit) - eye
+    if family == "near_own_ray":
+        tilt = rng.normal(size=3) * 10.0 ** -rng.integers(13, 18)
+        return eye, (eye - abs(reach) * (unit + tilt)) - eye
+    if family == "across_the_axis":
+        target = np.array([-eye[0], rng.normal() * np.linalg.norm(eye), -eye[2]])
+        return eye, (eye + abs(reach) * target) - eye
+    if family == "edge_directions":
+        eye = rng.uniform(0.05, 1.3) * grid.rho_max * edge_unit(rng, grid, 0.8)
+        return eye, (eye + reach * edge_unit(rng, grid, 0.8)) - eye
+    raise ValueError(f"unknown face family {family!r}")
+
+
+def face_rays(rng, grid, family, n_rays):
+    """``n_rays`` rays of ``family``: (origins, directions) arrays."""
+    rays = [face_ray(rng, grid, family) for _ in range(n_rays)]
+    return np.array([o for o, _ in rays]), np.array([d for _, d in rays])

@@ -51,6 +51,22 @@ from .locate import (
 from .ordered import advance, buffer_of, chain, post, rows_of, take
 from .stream import stream_segments
 
+# The spacing of float64 at 1 (2^-52).
+EPSILON = 2.220446049250313e-16
+# Each part of the cross product o x d (unit d) is off by at most about
+# eps |o|, so h = |o x d| by ~1.7 eps |o|, and (o x d)_y written with c
+# (``theta_plan``'s sweep sign) by ~3.9 eps |o| |d_h|. A line within these
+# of the centre or of the y axis passes through it as far as the inputs can
+# tell; below them the closest point's direction, and so the sweep's sign,
+# are rounding. Squared: h^2 against |o|^2 (``phi_plan``), the sweep sign's
+# square against |o|^2 |d_h|^2.
+THROUGH_CENTRE_SQ = (4.0 * EPSILON) ** 2
+THROUGH_AXIS_SQ = (4.0 * EPSILON) ** 2
+# A direction lies on a cone, as far as rounding of a = d_y^2 - tan^2 d_h^2
+# can tell, when |a| is at most this share of d_y^2 + tan^2 d_h^2
+# (``_cone_times``).
+PARALLEL = 16.0 * EPSILON
+
 
 @jit
 def _sphere_time(t_closest, h2, radius2, outward):
@@ -184,8 +200,33 @@ def line_geometry(ox, oy, oz, dx, dy, dz):
     return t_closest, h2, cx, cy, cz
 
 
+@jit
+def _comes_round(ox, oz, dx, dz, zone, sigma, theta_edges, theta_full):
+    """Whether a sweep in direction ``sigma`` that starts and ends in azimuthal
+    ``zone`` (one wider than half a turn) leaves it and comes round into it again.
+
+    The sweep (less than pi) must cover the gap to the edge ahead and then the
+    rest of the turn, outside the zone. Anything less is rounding of a start
+    or limit on an edge, which puts them in one zone while the sweep leaves
+    it. A sweep of pi or more is a sweep of ~0 against ``sigma``, rounded (the
+    start's azimuth within an ulp of the limit's, ``sigma`` from a sweep sign
+    of ~0), or one of pi past the y axis: the ray turns there at once, and
+    leaves the zone for a sliver at most. Not inlined: most rays never ask,
+    and its two ``atan2`` calls would crowd the plan's code.
+    """
+    n_theta = theta_edges.shape[0] - 1
+    edge = _theta_edge_ahead(zone, sigma, n_theta, theta_full)
+    theta_start = azimuth(ox, oz)
+    theta_limit = azimuth(dx, dz)
+    sweep = ((theta_limit - theta_start) * sigma) % TWO_PI
+    gap = ((theta_edges[edge] - theta_start) * sigma) % TWO_PI
+    span = theta_edges[n_theta] - theta_edges[0]
+    width = theta_edges[zone + 1] - theta_edges[zone] if zone < n_theta else TWO_PI - span
+    return gap + (TWO_PI - width) < sweep < math.pi
+
+
 @jit(inline="always")
-def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, on_axis, jt, jt_limit, theta_edges,
+def theta_plan(ox, oz, cx, cz, dx, dz, h2, t_closest, t_start, on_axis, jt, jt_limit, theta_edges,
                theta_full):
     """Phase 1 for theta: one monotone sweep, or a jump where the line meets the y axis.
 
@@ -200,12 +241,21 @@ def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, on_axis, jt, jt_limit
     would be taken to sweep to it and never reach it). Returns the start
     zone, the sweep sign, the number of half-planes crossed and ``t_axis``,
     the time of the jump (inf when none).
+
+    A line within rounding of the y axis (``THROUGH_AXIS_SQ``) meets it:
+    below that bound the sweep's sign is noise, and a line lying in a
+    half-plane's plane, as every line through the axis does, has that
+    plane's crossing time 0 / 0. Swept, a sensor on a half-plane looking
+    across the axis (or through the centre) had crossed its own half-plane
+    at such a time; rounded into the future, every crossing after it waited
+    for it, and the ray kept the sensor's zone past the axis.
     """
     inf = np.inf
     n_theta = theta_edges.shape[0] - 1
     n_zones_theta = n_theta if theta_full else n_theta + 1
     # (o x d)_y, written with c (= o + t_c d): the sign of the sweep.
     sweep_sign = cz * dx - cx * dz
+    b2 = dx * dx + dz * dz
     th_sigma = 0
     th_steps = 0
     t_axis = inf
@@ -213,8 +263,11 @@ def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, on_axis, jt, jt_limit
         pass  # parallel to the y axis: theta never changes
     elif on_axis:
         jt = jt_limit
-    elif sweep_sign == 0.0:
-        meets_axis = t_closest - (cx * dx + cz * dz) / (dx * dx + dz * dz)
+    elif sweep_sign * sweep_sign <= THROUGH_AXIS_SQ * (t_closest * t_closest + h2) * b2:
+        # Through the y axis, exactly or to within rounding of o x d (the
+        # sign, a difference of products of size |o| |d_h|, is then noise,
+        # and so would be the sweep planned from it).
+        meets_axis = t_closest - (cx * dx + cz * dz) / b2
         if meets_axis > t_start:
             if jt != jt_limit:
                 t_axis = meets_axis
@@ -223,16 +276,8 @@ def theta_plan(ox, oz, cx, cz, dx, dz, t_closest, t_start, on_axis, jt, jt_limit
     else:
         th_sigma = 1 if sweep_sign > 0.0 else -1
         th_steps = ((jt_limit - jt) * th_sigma) % n_zones_theta
-        if th_steps == 0:
-            # A zone wider than half a turn: the sweep (< pi) may still leave it
-            # and come round into it again; compare the sweep with the gap.
-            theta_start = azimuth(ox, oz)
-            theta_limit = azimuth(dx, dz)
-            edge = _theta_edge_ahead(jt, th_sigma, n_theta, theta_full)
-            sweep = ((theta_limit - theta_start) * th_sigma) % TWO_PI
-            gap = ((theta_edges[edge] - theta_start) * th_sigma) % TWO_PI
-            if gap < sweep:
-                th_steps = n_zones_theta
+        if th_steps == 0 and _comes_round(ox, oz, dx, dz, jt, th_sigma, theta_edges, theta_full):
+            th_steps = n_zones_theta
     return jt, th_sigma, th_steps, t_axis
 
 
@@ -263,13 +308,20 @@ def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_start, kp, kp_
     ph1_steps = 0
     ph2_start = kp
     ph2_steps = 0
-    if h2 == 0.0 or (slope == 0.0 and offset == 0.0):
-        # Through the centre (h2 is exactly 0 for collinear o and d), or a line
-        # of constant phi: no turning point.
+    # Through the centre to within rounding of the cross product o x d
+    # (``THROUGH_CENTRE_SQ``): then the closest point c, of size h, points
+    # anywhere, and so does the plane the line turns in. A line through the
+    # centre lies on the cone of its elevation, and the time it crosses that
+    # cone is 0 / 0: had it rounded into the future, every crossing after it
+    # would have waited for it, and phi kept the start's zone past the
+    # centre. So such a line jumps there.
+    through = h2 <= THROUGH_CENTRE_SQ * (t_closest * t_closest + h2)
+    if through or (slope == 0.0 and offset == 0.0):
+        # Through the centre, or a line of constant phi: no turning point.
         if ox == 0.0 and oy == 0.0 and oz == 0.0:
             kp = kp_limit
             ph2_start = kp_limit
-        elif t_closest > t_start and h2 == 0.0 and kp != kp_limit:
+        elif t_closest > t_start and through and kp != kp_limit:
             t_turn = t_closest
             ph2_start = kp_limit
     else:
@@ -349,7 +401,11 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
     before phi's turning point the earlier root is the crossing, after it the
     later one. ``inf`` when no root qualifies: the crossing is at infinity (a
     limit direction on the cone). The cone of phi = 0 (``nappe`` 0) is the
-    plane y = 0.
+    plane y = 0. A discriminant rounded below zero is taken as zero, a
+    tangency and its double root, except when the direction lies on the cone
+    (``a`` ~ 0, its sign rounding): then with the closest point at the
+    centre's height (``half_b`` ~ 0 too) the line only approaches the cone,
+    at infinity, and the double root had put a crossing at the closest point.
 
     One loop over the cones in index order, with unit stride, no branches
     and slices that start at zero, so that LLVM vectorises it (four square
@@ -368,19 +424,24 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
     for k in range(count):
         tan2 = tan2s[k]
         nappe = nappes[k]
-        a = dy * dy - tan2 * b2
+        rise = dy * dy
+        spread = tan2 * b2
+        a = rise - spread
         half_b = cy * dy - tan2 * cab
         c = cy * cy - tan2 * ca2
-        disc = max(half_b * half_b - a * c, 0.0)
-        q = -(half_b + math.copysign(math.sqrt(disc), half_b))
+        disc = half_b * half_b - a * c
+        q = -(half_b + math.copysign(math.sqrt(max(disc, 0.0)), half_b))
         u1 = q / a
         u2 = c / q
         t1 = t_closest + u1
         t2 = t_closest + u2
+        # No real root and the direction on the cone to within rounding: the
+        # line meets the cone at infinity only (see the docstring).
+        real = (disc >= 0.0) | (abs(a) > PARALLEL * (rise + spread))
         # Selects, not branches: ``earliest <= t < inf`` also rejects NaN, and
         # the nappe test keeps the cone half whose sign of y matches phi.
-        ok1 = (t1 >= earliest) & (t1 < inf) & (nappe * (cy + u1 * dy) >= 0.0)
-        ok2 = (t2 >= earliest) & (t2 < inf) & (nappe * (cy + u2 * dy) >= 0.0)
+        ok1 = real & (t1 >= earliest) & (t1 < inf) & (nappe * (cy + u1 * dy) >= 0.0)
+        ok2 = real & (t2 >= earliest) & (t2 < inf) & (nappe * (cy + u2 * dy) >= 0.0)
         latest = max(t1 if ok1 else -inf, t2 if ok2 else -inf)
         crossing = (min(t1 if ok1 else inf, t2 if ok2 else inf) if first_branch
                     else (latest if latest > -inf else inf))
@@ -523,7 +584,7 @@ def angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid, lookups)
     jt_limit = theta_zone_rough(dx, dz, theta_edges, grid.theta_sin, grid.theta_cos,
                                 grid.theta_kind)
     jt, th_sigma, th_steps, t_axis = theta_plan(
-        ox, oz, cx, cz, dx, dz, t_closest, 0.0, ox == 0.0 and oz == 0.0, jt, jt_limit,
+        ox, oz, cx, cz, dx, dz, h2, t_closest, 0.0, ox == 0.0 and oz == 0.0, jt, jt_limit,
         theta_edges, grid.theta_full,
     )
     phi_edges = grid.phi_edges

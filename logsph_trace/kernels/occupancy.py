@@ -145,7 +145,7 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     lookups[2] = jt_limit
     lookups[3] = kp_limit
     jt, th_sigma, th_steps, t_axis = theta_plan(
-        sx, sz, cx, cz, dx, dz, t_closest, t_start, ox == 0.0 and oz == 0.0, jt, jt_limit,
+        sx, sz, cx, cz, dx, dz, h2, t_closest, t_start, ox == 0.0 and oz == 0.0, jt, jt_limit,
         theta_edges, theta_full,
     )
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
