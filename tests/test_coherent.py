@@ -120,6 +120,32 @@ def test_near_singular_rays_in_a_coherent_scan(kind, coherent_from_1000_rays):
     assert _flags(grid, sensor, points)[2] > 0
 
 
+@pytest.mark.parametrize("scan", [0, 2, 3])
+def test_lines_along_faces_in_a_coherent_scan(scan, coherent_from_1000_rays):
+    """The sensor at a power of two times a unit vector on an edge's cone and
+    half-plane, and rays among a camera's along its own line through the
+    centre and across the y axis in its own vertical plane: lines that lie on
+    a cone or in a plane of the grid (``test_singular``'s face rays). Walked
+    from a sphere near their end, the rays' start points lie on those faces
+    too, and the walk must plan them from the sensor, as the trace does."""
+    grid, _, forward, _ = SCANS[scan]
+    rng = np.random.default_rng(53)
+    phi = grid.phi_edges[rng.integers(1, grid.phi_edges.size - 1)]
+    theta = grid.theta_edges[rng.integers(0, grid.theta_edges.size)]
+    unit = np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+    sensor = 2.0 ** np.floor(np.log2(grid.rho_min / 2)) * unit
+    reach = rng.uniform(0.2, 1.3, (2000, 1)) * grid.rho_max
+    along = unit * rng.choice([-1.0, 1.0], (1000, 1))
+    across = np.tile([-sensor[0], 0.0, -sensor[2]], (1000, 1))
+    across[:, 1] = rng.normal(size=1000) * np.linalg.norm(sensor)
+    across /= np.linalg.norm(across, axis=1, keepdims=True)
+    points = np.concatenate([_camera_scan(rng, sensor, forward),
+                             sensor + reach * np.concatenate([along, across])])
+    got = lt.OccupancyGrid(grid).integrate(points, sensor)
+    np.testing.assert_array_equal(got.log_odds, _reference_log_odds(grid, points, sensor))
+    assert _flags(grid, sensor, points)[2] > 0
+
+
 def _ending_at_faces(rng, grid, camera, face, offsets):
     """The end points of 1,500 of ``camera``'s rays moved onto the nearest edge
     of ``face`` (rho, theta or phi) and then by one of ``offsets`` (times rho_max

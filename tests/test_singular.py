@@ -294,6 +294,48 @@ def test_both_integrate_paths_near_singular_sets(name, sensor, kinds):
             fast.log_odds, _reference_log_odds(grid, points, sensor), err_msg=kind)
 
 
+@pytest.mark.parametrize("name", ["log_full", "paper_dm", "uniform_partial_wide",
+                                  "explicit_narrow", "thin_shell", "small_window"])
+def test_both_integrate_paths_on_lines_along_faces(name):
+    """A sensor in the gap on an interior edge's cone (half the time on a half-plane too),
+    and end points on its own line through the centre and across the y axis
+    in its own vertical plane: lines that lie on a cone or in a plane of the
+    grid, exactly (``o x d == 0`` in floats, for many) or within rounding.
+
+    Which side of the face holds such a line is rounding's choice, and the
+    integrate paths must make the trace's. The column walk starts where a ray
+    leaves the gap; where that point is within rounding of a face of its
+    zone, the walk plans that family from the sensor, as the trace does,
+    instead of looking the point's zone up: another rounding of another
+    point, which had disagreed with the trace on all six grids.
+    """
+    from test_occupancy import _reference_log_odds
+
+    grid = GRIDS[name]()
+    rng = np.random.default_rng(41)
+    inside_gap = 2.0 ** np.floor(np.log2(grid.rho_min))
+    exact = 0
+    for _ in range(40):
+        phi = grid.phi_edges[rng.integers(1, grid.phi_edges.shape[0] - 1)]
+        theta = rng.uniform(*grid.theta_range)
+        if rng.random() < 0.5:
+            theta = grid.theta_edges[rng.integers(0, grid.theta_edges.shape[0])]
+        unit = np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+        sensor = rng.choice([-1.0, 1.0]) * inside_gap * 2.0 ** -rng.integers(1, 4) * unit
+        reach = rng.uniform(0.2, 1.3, (16, 1)) * grid.rho_max * rng.choice([-1.0, 1.0], (16, 1))
+        across = np.array([-sensor[0], 0.0, -sensor[2]])
+        across[1] = rng.normal() * np.linalg.norm(sensor)
+        ends = np.where(np.arange(16)[:, None] < 10, unit, across / np.linalg.norm(across))
+        points = sensor + reach * ends
+        offsets = points - sensor
+        directions = offsets / np.linalg.norm(offsets, axis=1, keepdims=True)
+        exact += int(np.sum(np.all(np.cross(sensor, directions) == 0.0, axis=1)))
+        fast = OccupancyGrid(grid).integrate(points, sensor)
+        np.testing.assert_array_equal(fast.log_odds, _reference_log_odds(grid, points, sensor),
+                                      err_msg=f"sensor={sensor.tolist()}")
+    assert exact > 50  # the exact case is met, not only its near misses
+
+
 def test_an_object_behind_the_robot_is_found_on_a_gaze_at_the_robot():
     """The person looks at the robot's head (the map's centre); the object is behind it."""
     grid = lt.Grid(0.3, 10.0, 32, 72, 36)

@@ -58,6 +58,35 @@ def _left_within_snap(t_now, t_next, snap, t_closest, h2, i, rho_sq):
     return not _in_shell((t_now + snap - t_closest) ** 2 + h2, i, rho_sq)
 
 
+@jit(inline="always")
+def _near_theta_face(x, z, zone, within, grid):
+    """Whether (x, ., z) lies within ``within`` of a half-plane's plane bounding
+    azimuthal ``zone`` (``n_theta``: the rest of the turn of a partial range),
+    where a lookup and a trace may round to different sides."""
+    sines = grid.theta_sin
+    cosines = grid.theta_cos
+    n = sines.shape[0] - 1
+    low = zone if zone < n else n
+    high = zone + 1 if zone < n else 0
+    return (abs(x * cosines[low] - z * sines[low]) <= within
+            or abs(x * cosines[high] - z * sines[high]) <= within)
+
+
+@jit(inline="always")
+def _near_phi_face(x, y, z, zone, within, grid):
+    """Whether (x, y, z) lies within ``within`` of a cone bounding elevation
+    ``zone`` (-1, ``n_phi``: below and above a partial range); see
+    ``_near_theta_face``."""
+    sines = grid.phi_sin
+    cosines = grid.phi_cos
+    n = sines.shape[0] - 1
+    flat = math.sqrt(x * x + z * z)
+    low = max(zone, 0)
+    high = min(zone + 1, n)
+    return (abs(y * cosines[low] - flat * sines[low]) <= within
+            or abs(y * cosines[high] - flat * sines[high]) <= within)
+
+
 @jit
 def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zones, lookups,
              free, skip):
@@ -98,6 +127,8 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     slack = 1e-9 * (math.sqrt(rho_sq[n_rho]) + math.sqrt(ox * ox + oy * oy + oz * oz))
     snap = 1e-3 * slack
     i = ir
+    jt_sensor = jt
+    kp_sensor = kp
     # Every time is on the trace's clock, from the sensor: a crossing is then
     # the very number the trace computes (the same closed form of the same
     # line), so a ray ending on a face ends where the trace ends it.
@@ -144,28 +175,51 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     kp_limit = phi_zone_near(dx, dy, dz, lookups[3], grid)
     lookups[2] = jt_limit
     lookups[3] = kp_limit
+    # Each family is planned from the start point, unless that point lies
+    # within rounding of a face of its zone: there a lookup may round the
+    # other way from the trace, which reaches the point by its crossings from
+    # the sensor (a line through or within ~1e-16 of the centre whose
+    # direction lies on a cone, or one through the y axis on a half-plane).
+    # Such a family is planned from the sensor, as the trace plans it, and the
+    # walk starts after its crossings up to ``t_start``.
+    theta_from_sensor = ir == -1 and _near_theta_face(sx, sz, jt, snap, grid)
+    phi_from_sensor = ir == -1 and _near_phi_face(sx, sy, sz, kp, snap, grid)
+    t_theta = 0.0 if theta_from_sensor else t_start
+    t_phi = 0.0 if phi_from_sensor else t_start
     jt, th_sigma, th_steps, t_axis = theta_plan(
-        sx, sz, cx, cz, dx, dz, h2, t_closest, t_start, ox == 0.0 and oz == 0.0, jt, jt_limit,
-        theta_edges, theta_full,
+        ox if theta_from_sensor else sx, oz if theta_from_sensor else sz, cx, cz, dx, dz, h2,
+        t_closest, t_theta, ox == 0.0 and oz == 0.0, jt_sensor if theta_from_sensor else jt,
+        jt_limit, theta_edges, theta_full,
     )
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
-        sx, sy, sz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_start, kp, kp_limit, grid, lookups,
+        ox if phi_from_sensor else sx, oy if phi_from_sensor else sy,
+        oz if phi_from_sensor else sz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_phi,
+        kp_sensor if phi_from_sensor else kp, kp_limit, grid, lookups,
     )
-    n_t = theta_times(cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, th_sigma, th_steps,
+    n_t = theta_times(cx, cz, dx, dz, t_closest, t_theta, jt, jt_limit, th_sigma, th_steps,
                       t_axis, grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times,
                       zones)
-    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, ph1_steps,
+    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_phi, kp, kp_limit, t_turn, ph1_steps,
                     ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones)
     zones[THETA, 0] = jt
     zones[PHI, 0] = kp
     times[THETA, n_t + 1] = np.inf
     times[PHI, n_p + 1] = np.inf
+    # Crossings consumed so far per family (a plan from the sensor has some
+    # before the start: the trace crosses them in the gap, or below the start
+    # sphere, where they bound no cell of the walk's).
+    done_t = 0
+    done_p = 0
+    while t_theta < t_start and times[THETA, done_t + 1] <= t_start:
+        done_t += 1
+    while t_phi < t_start and times[PHI, done_p + 1] <= t_start:
+        done_p += 1
+    jt = zones[THETA, done_t]
+    kp = zones[PHI, done_p]
 
     column = jt * n_phi + kp
     column_in = jt < n_theta and 0 <= kp < n_phi
     falling = t_closest > t_start
-    done_t = 0
-    done_p = 0
     t_now = t_start  # when the current column was entered
     at_crossing = True  # the current cell was entered at t_now, not through a sphere
     inward = False  # ... or through a sphere inwards (then leaving outwards is the dip)
