@@ -137,6 +137,26 @@ def test_rays_along_faces_stay_in_the_cells_beside_them(grid, family):
     assert not failures, f"{len(failures)} traces wrong; first:\n{failures[0]}"
 
 
+def test_a_ray_through_the_centre_that_starts_on_its_own_cone():
+    """The eye on the cone of phi = 67.5 deg (an edge), looking through the
+    centre, 4.8e-15 (5 eps |o|) from it, its closest point at the centre's
+    height: the direction lies on the double cone, so the line meets that
+    cone only at infinity, ahead on the lower nappe and behind on the upper
+    one, the eye's. Taken as ahead on both, the eye's own cone held every
+    crossing back, and phi stayed 67.5 deg past the centre, 135 deg off
+    (``face_rays``, ``near_own_ray``, seed 11: 1 ray of 18,000).
+    """
+    grid = GRIDS["log_full"]()
+    origin = np.array([-1.082392200292394, 3.695518130045147, 1.0823922002923942])
+    direction = np.array([2.5990208632764524, -8.873612280289121, -2.5990208632764698])
+    got = lt.trace(grid, origin, direction)
+    unit = direction / np.linalg.norm(direction)
+    assert within_faces((got.cells, got.t_enter, got.t_exit), origin, unit, grid.rho_edges,
+                        grid.theta_edges, grid.phi_edges, grid.rho_max + 4.0) is None
+    past = got.t_enter > 4.0  # past the centre: the direction's side, below -45 deg
+    assert np.all(got.cells[past, 2] <= 1)
+
+
 @st.composite
 def singular_cases(draw):
     """A grid of the zoo, a singular class, an offset, and a ray aimed at it.

@@ -406,6 +406,9 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
     (``a`` ~ 0, its sign rounding): then with the closest point at the
     centre's height (``half_b`` ~ 0 too) the line only approaches the cone,
     at infinity, and the double root had put a crossing at the closest point.
+    On the nappe the direction points into, that is ahead (``inf``); on the
+    other, behind the ray, whose start the plan saw across it only by
+    rounding: the crossing is then now (``earliest``).
 
     One loop over the cones in index order, with unit stride, no branches
     and slices that start at zero, so that LLVM vectorises it (four square
@@ -440,11 +443,14 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
         real = (disc >= 0.0) | (abs(a) > PARALLEL * (rise + spread))
         # Selects, not branches: ``earliest <= t < inf`` also rejects NaN, and
         # the nappe test keeps the cone half whose sign of y matches phi.
-        ok1 = real & (t1 >= earliest) & (t1 < inf) & (nappe * (cy + u1 * dy) >= 0.0)
-        ok2 = real & (t2 >= earliest) & (t2 < inf) & (nappe * (cy + u2 * dy) >= 0.0)
+        ok1 = (t1 >= earliest) & (t1 < inf) & (nappe * (cy + u1 * dy) >= 0.0)
+        ok2 = (t2 >= earliest) & (t2 < inf) & (nappe * (cy + u2 * dy) >= 0.0)
         latest = max(t1 if ok1 else -inf, t2 if ok2 else -inf)
         crossing = (min(t1 if ok1 else inf, t2 if ok2 else inf) if first_branch
                     else (latest if latest > -inf else inf))
+        # Met only at infinity: ahead on the nappe the direction points into,
+        # else behind, where the ray starts within rounding of it: now.
+        crossing = crossing if real else (inf if nappe * dy > 0.0 else earliest)
         out[k] = plane if nappe == 0.0 else crossing
 
 
