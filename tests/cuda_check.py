@@ -12,7 +12,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from singular import CLASSES, singular_rays
+from singular import CLASSES, FACE_FAMILIES, face_rays, singular_rays
 
 import logsph_trace as lt
 
@@ -26,7 +26,8 @@ GRIDS = {
 
 def cases(n_random, n_singular, seed=5):
     """{name: (grid name, origins, directions, t_max)} over every grid kind:
-    random rays, a third of them cut short, and each near-singular class."""
+    random rays, a third of them cut short, each near-singular class, and
+    each family of rays along faces."""
     rng = np.random.default_rng(seed)
     out = {}
     for name, make in GRIDS.items():
@@ -40,6 +41,9 @@ def cases(n_random, n_singular, seed=5):
         for kind in CLASSES:
             o, d, _ = singular_rays(rng, grid, kind, n_singular, offsets=(0.0, 1e-12, 1e-6))
             out[f"{name} {kind}"] = (name, o, d, np.full(o.shape[0], np.inf))
+        for family in FACE_FAMILIES:
+            o, d = face_rays(rng, grid, family, n_singular)
+            out[f"{name} {family}"] = (name, o, d, np.full(o.shape[0], np.inf))
     return out
 
 
@@ -93,20 +97,29 @@ def map_cases(seed=8, n_points=45):
     integrated in a row into one map, from the centre, 10 cm off it, from the
     egocentric gap and from inside the region; a third of each scan's points
     on the grid's spheres (the end cells the trace decides by its own
-    crossing times)."""
+    crossing times). The last sensor sits in the gap on an edge's cone and
+    half-plane, and the rest of its points lie on its own line through the
+    centre: lines along faces (``singular.face_rays``)."""
     rng = np.random.default_rng(seed)
     out = {}
     for name, make in GRIDS.items():
         grid = make()
+        phi, theta = grid.phi_edges[1], grid.theta_edges[1]
+        unit = np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+        on_faces = 2.0 ** np.floor(np.log2(grid.rho_min / 2)) * unit
         sensors = np.array([[0.0, 0.0, 0.0], [0.06, 0.08, 0.0],
                             [0.3 * grid.rho_min, 0.0, -0.2 * grid.rho_min],
-                            [0.2 * grid.rho_max, 0.1 * grid.rho_max, 0.3 * grid.rho_max]])
+                            [0.2 * grid.rho_max, 0.1 * grid.rho_max, 0.3 * grid.rho_max],
+                            on_faces])
         scans = []
-        for sensor in sensors:
+        for s, sensor in enumerate(sensors):
             points = rng.uniform(-grid.rho_max, grid.rho_max, (n_points, 3))
             on = points[: n_points // 3]
             radius = rng.choice(grid.rho_edges, on.shape[0])
             on *= (radius / np.linalg.norm(on, axis=1))[:, None]
+            if s == len(sensors) - 1:
+                reach = rng.uniform(-1.3, 1.3, (n_points - on.shape[0], 1)) * grid.rho_max
+                points[on.shape[0]:] = sensor + reach * unit
             scans.append(points)
         out[f"{name} map"] = (name, np.array(scans), sensors, 0.8 * grid.rho_max)
     return out
