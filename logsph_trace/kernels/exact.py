@@ -230,9 +230,11 @@ def theta_plan(ox, oz, cx, cz, dx, dz, h2, t_closest, t_start, on_axis, jt, jt_l
                theta_full):
     """Phase 1 for theta: one monotone sweep, or a jump where the line meets the y axis.
 
-    ``c`` is the line's closest point to the centre and ``t_closest`` its
-    time (``line_geometry``), which sets the clock of every time here. The ray
-    starts at time ``t_start`` (0 for a trace), at the point whose x and z
+    ``c`` is the line's closest point to the centre, ``h2`` its squared
+    distance and ``t_closest`` its time (``line_geometry``), which sets the
+    clock of every time here: the clock's origin lies ``t_closest^2 + h2``
+    from the centre, squared. The ray starts at time ``t_start`` (0 for a
+    trace), at the point whose x and z
     are ``ox``, ``oz``; ``jt`` and ``jt_limit`` are the zones of that point
     and of the direction (the limit as t -> inf). ``on_axis``: the clock's
     origin lies on the y axis, so the line meets the axis there, at t = 0,

@@ -114,7 +114,9 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     leaves the gap), when the cells below it are known to be flagged by
     other rays (``occupancy._mark_off_centre``); a ray that ends before it
     (or within 1e-9 of it) starts on the last sphere it crosses before.
-    Wherever the walk starts, its times are the trace's, from the sensor.
+    Wherever the walk starts, its times are the trace's, from the sensor,
+    and where its start point lies within ``snap`` of a face of its zone, a
+    family is planned from the sensor too (see the comment at the plans).
     """
     rho_sq = grid.rho_sq
     theta_edges = grid.theta_edges
