@@ -157,6 +157,24 @@ def test_a_ray_through_the_centre_that_starts_on_its_own_cone():
     assert np.all(got.cells[past, 2] <= 1)
 
 
+def test_an_eye_beside_the_y_axis_with_a_steep_direction_sweeps_theta():
+    """An eye 1.2e-16 from the y axis (at the pole of a cone of edges), looking up
+    the axis at 9e-13 rad off it: the line passes the axis on a side that
+    ``(o x d)_y`` tells exactly, far below the worst-case rounding (4 eps |o|)
+    of the sweep's sign written with ``c``, so theta sweeps through three
+    sectors in the first 4e-4 of the ray, as the oracle says. Taken to meet
+    the axis, it jumped to the direction's sector at once.
+    """
+    grid = GRIDS["log_full"]()
+    origin = np.array([-8.659560562354934e-17, -2.0, -8.659560562354932e-17])
+    direction = np.array([-6.97877379072642e-13, 1.0, 5.808646477529279e-13])
+    got = lt.trace(grid, origin, direction)
+    want = oracle_trace(origin, direction, grid.rho_edges, grid.theta_edges, grid.phi_edges)
+    message = compare((got.cells, got.t_enter, got.t_exit), want, grid.rho_max + 2.0)
+    assert message is None, message
+    assert got.cells[:4, 1].tolist() == [2, 3, 4, 5]
+
+
 @st.composite
 def singular_cases(draw):
     """A grid of the zoo, a singular class, an offset, and a ray aimed at it.

@@ -55,7 +55,7 @@ from .stream import stream_segments
 EPSILON = 2.220446049250313e-16
 # Each part of the cross product o x d (unit d) is off by at most about
 # eps |o|, so h = |o x d| by ~1.7 eps |o|, and (o x d)_y written with c
-# (``theta_plan``'s sweep sign) by ~3.9 eps |o| |d_h|. A line within these
+# (``theta_plan``'s sweep sign) by ~3.9 eps |o| |d_h| at worst. A line within these
 # of the centre or of the y axis passes through it as far as the inputs can
 # tell; below them the closest point's direction, and so the sweep's sign,
 # are rounding. Squared: h^2 against |o|^2 (``phi_plan``), the sweep sign's
@@ -225,9 +225,17 @@ def _comes_round(ox, oz, dx, dz, zone, sigma, theta_edges, theta_full):
     return gap + (TWO_PI - width) < sweep < math.pi
 
 
+@jit
+def _through_axis(eye_x, eye_z, dx, dz):
+    """Whether the line from the eye along (dx, ., dz) meets the y axis to within
+    the rounding of ``(o x d)_y = o_z d_x - o_x d_z``, its two products' few ulps."""
+    across = eye_z * dx - eye_x * dz
+    return abs(across) <= 4.0 * EPSILON * (abs(eye_z * dx) + abs(eye_x * dz))
+
+
 @jit(inline="always")
-def theta_plan(ox, oz, cx, cz, dx, dz, h2, t_closest, t_start, on_axis, jt, jt_limit, theta_edges,
-               theta_full):
+def theta_plan(ox, oz, cx, cz, dx, dz, h2, t_closest, t_start, eye_x, eye_z, jt, jt_limit,
+               theta_edges, theta_full):
     """Phase 1 for theta: one monotone sweep, or a jump where the line meets the y axis.
 
     ``c`` is the line's closest point to the centre, ``h2`` its squared
@@ -236,21 +244,26 @@ def theta_plan(ox, oz, cx, cz, dx, dz, h2, t_closest, t_start, on_axis, jt, jt_l
     from the centre, squared. The ray starts at time ``t_start`` (0 for a
     trace), at the point whose x and z
     are ``ox``, ``oz``; ``jt`` and ``jt_limit`` are the zones of that point
-    and of the direction (the limit as t -> inf). ``on_axis``: the clock's
-    origin lies on the y axis, so the line meets the axis there, at t = 0,
-    and every point after it has the direction's azimuth (written with ``c``,
-    the sweep's sign would be rounding, and a line lying in a half-plane
-    would be taken to sweep to it and never reach it). Returns the start
-    zone, the sweep sign, the number of half-planes crossed and ``t_axis``,
-    the time of the jump (inf when none).
+    and of the direction (the limit as t -> inf). ``eye_x``, ``eye_z``: the
+    clock's origin (the eye or sensor the line was given by). On the y axis
+    the line meets the axis there, at t = 0, and every point after it has the
+    direction's azimuth (written with ``c``, the sweep's sign would be
+    rounding, and a line lying in a half-plane would be taken to sweep to it
+    and never reach it). Returns the start zone, the sweep sign, the number
+    of half-planes crossed and ``t_axis``, the time of the jump (inf when
+    none).
 
-    A line within rounding of the y axis (``THROUGH_AXIS_SQ``) meets it:
-    below that bound the sweep's sign is noise, and a line lying in a
-    half-plane's plane, as every line through the axis does, has that
-    plane's crossing time 0 / 0. Swept, a sensor on a half-plane looking
-    across the axis (or through the centre) had crossed its own half-plane
-    at such a time; rounded into the future, every crossing after it waited
-    for it, and the ray kept the sensor's zone past the axis.
+    A line within rounding of the y axis meets it: below that the sweep's
+    sign is noise, and a line lying in a half-plane's plane, as every line
+    through the axis does, has that plane's crossing time 0 / 0. Swept, a
+    sensor on a half-plane looking across the axis (or through the centre)
+    had crossed its own half-plane at such a time; rounded into the future,
+    every crossing after it waited for it, and the ray kept the sensor's
+    zone past the axis. Where the sign written with ``c`` is under its
+    bound (``THROUGH_AXIS_SQ``, for the worst case), the sign is taken from
+    the eye instead, ``(o x d)_y``, whose rounding is that of its own two
+    products: an eye near the axis, with a steep direction, tells its side
+    to far below ``eps |o|``.
     """
     inf = np.inf
     n_theta = theta_edges.shape[0] - 1
@@ -263,12 +276,11 @@ def theta_plan(ox, oz, cx, cz, dx, dz, h2, t_closest, t_start, on_axis, jt, jt_l
     t_axis = inf
     if dx == 0.0 and dz == 0.0:  # not b2 == 0: b2 underflows for |d_x|, |d_z| < 1e-154
         pass  # parallel to the y axis: theta never changes
-    elif on_axis:
+    elif eye_x == 0.0 and eye_z == 0.0:
         jt = jt_limit
-    elif sweep_sign * sweep_sign <= THROUGH_AXIS_SQ * (t_closest * t_closest + h2) * b2:
-        # Through the y axis, exactly or to within rounding of o x d (the
-        # sign, a difference of products of size |o| |d_h|, is then noise,
-        # and so would be the sweep planned from it).
+    elif (sweep_sign * sweep_sign <= THROUGH_AXIS_SQ * (t_closest * t_closest + h2) * b2
+          and _through_axis(eye_x, eye_z, dx, dz)):
+        # Through the y axis, exactly or to within rounding of the inputs.
         meets_axis = t_closest - (cx * dx + cz * dz) / b2
         if meets_axis > t_start:
             if jt != jt_limit:
@@ -276,6 +288,9 @@ def theta_plan(ox, oz, cx, cz, dx, dz, h2, t_closest, t_start, on_axis, jt, jt_l
         else:
             jt = jt_limit
     else:
+        if sweep_sign * sweep_sign <= THROUGH_AXIS_SQ * (t_closest * t_closest + h2) * b2:
+            # The eye tells the side the line passes on; c cannot (see above).
+            sweep_sign = eye_z * dx - eye_x * dz
         th_sigma = 1 if sweep_sign > 0.0 else -1
         th_steps = ((jt_limit - jt) * th_sigma) % n_zones_theta
         if th_steps == 0 and _comes_round(ox, oz, dx, dz, jt, th_sigma, theta_edges, theta_full):
@@ -592,8 +607,8 @@ def angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid, lookups)
     jt_limit = theta_zone_rough(dx, dz, theta_edges, grid.theta_sin, grid.theta_cos,
                                 grid.theta_kind)
     jt, th_sigma, th_steps, t_axis = theta_plan(
-        ox, oz, cx, cz, dx, dz, h2, t_closest, 0.0, ox == 0.0 and oz == 0.0, jt, jt_limit,
-        theta_edges, grid.theta_full,
+        ox, oz, cx, cz, dx, dz, h2, t_closest, 0.0, ox, oz, jt, jt_limit, theta_edges,
+        grid.theta_full,
     )
     phi_edges = grid.phi_edges
     kp_limit = phi_zone_rough(dx, dy, dz, phi_edges, grid.phi_sin, grid.phi_cos, grid.phi_kind)

@@ -190,8 +190,8 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     t_phi = 0.0 if phi_from_sensor else t_start
     jt, th_sigma, th_steps, t_axis = theta_plan(
         ox if theta_from_sensor else sx, oz if theta_from_sensor else sz, cx, cz, dx, dz, h2,
-        t_closest, t_theta, ox == 0.0 and oz == 0.0, jt_sensor if theta_from_sensor else jt,
-        jt_limit, theta_edges, theta_full,
+        t_closest, t_theta, ox, oz, jt_sensor if theta_from_sensor else jt, jt_limit,
+        theta_edges, theta_full,
     )
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
         ox if phi_from_sensor else sx, oy if phi_from_sensor else sy,
