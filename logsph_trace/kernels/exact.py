@@ -226,11 +226,11 @@ def _comes_round(ox, oz, dx, dz, zone, sigma, theta_edges, theta_full):
 
 
 @jit
-def _through_axis(eye_x, eye_z, dx, dz):
-    """Whether the line from the eye along (dx, ., dz) meets the y axis to within
-    the rounding of ``(o x d)_y = o_z d_x - o_x d_z``, its two products' few ulps."""
+def _eye_sweep(eye_x, eye_z, dx, dz):
+    """``(o x d)_y = o_z d_x - o_x d_z`` from the eye, and whether the line meets
+    the y axis to within its rounding, its two products' few ulps."""
     across = eye_z * dx - eye_x * dz
-    return abs(across) <= 4.0 * EPSILON * (abs(eye_z * dx) + abs(eye_x * dz))
+    return across, abs(across) <= 4.0 * EPSILON * (abs(eye_z * dx) + abs(eye_x * dz))
 
 
 @jit(inline="always")
@@ -274,12 +274,15 @@ def theta_plan(ox, oz, cx, cz, dx, dz, h2, t_closest, t_start, eye_x, eye_z, jt,
     th_sigma = 0
     th_steps = 0
     t_axis = inf
+    through = False
+    if sweep_sign * sweep_sign <= THROUGH_AXIS_SQ * (t_closest * t_closest + h2) * b2:
+        # The eye tells the side the line passes on, where c cannot (see above).
+        sweep_sign, through = _eye_sweep(eye_x, eye_z, dx, dz)
     if dx == 0.0 and dz == 0.0:  # not b2 == 0: b2 underflows for |d_x|, |d_z| < 1e-154
         pass  # parallel to the y axis: theta never changes
     elif eye_x == 0.0 and eye_z == 0.0:
         jt = jt_limit
-    elif (sweep_sign * sweep_sign <= THROUGH_AXIS_SQ * (t_closest * t_closest + h2) * b2
-          and _through_axis(eye_x, eye_z, dx, dz)):
+    elif through:
         # Through the y axis, exactly or to within rounding of the inputs.
         meets_axis = t_closest - (cx * dx + cz * dz) / b2
         if meets_axis > t_start:
@@ -288,9 +291,6 @@ def theta_plan(ox, oz, cx, cz, dx, dz, h2, t_closest, t_start, eye_x, eye_z, jt,
         else:
             jt = jt_limit
     else:
-        if sweep_sign * sweep_sign <= THROUGH_AXIS_SQ * (t_closest * t_closest + h2) * b2:
-            # The eye tells the side the line passes on; c cannot (see above).
-            sweep_sign = eye_z * dx - eye_x * dz
         th_sigma = 1 if sweep_sign > 0.0 else -1
         th_steps = ((jt_limit - jt) * th_sigma) % n_zones_theta
         if th_steps == 0 and _comes_round(ox, oz, dx, dz, jt, th_sigma, theta_edges, theta_full):
