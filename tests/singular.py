@@ -129,7 +129,7 @@ def singular_rays(rng, grid, kind, n_rays, offsets=OFFSETS):
 # along the grid's edges, where the normalised direction is often collinear
 # with the eye to the last bit (o x d == 0) and otherwise within a few ulps.
 
-FACE_FAMILIES = ("own_ray", "near_own_ray", "across_the_axis", "edge_directions")
+FACE_FAMILIES = ("own_ray", "near_own_ray", "across_the_axis", "edge_directions", "off_own_ray")
 
 
 def edge_unit(rng, grid, on_edge=0.6):
@@ -153,7 +153,11 @@ def face_ray(rng, grid, family):
     the centre, tilted by 1e-17 ... 1e-13 rad. ``across_the_axis``: the eye
     as in ``own_ray``, looking across the y axis in its own vertical plane.
     ``edge_directions``: an eye anywhere along an edge unit vector, looking
-    along another one. The directions are left unnormalised.
+    along another one. ``off_own_ray``: the eye as in ``own_ray``, looking
+    along its own line, through the centre or away from it, tilted by
+    1e-13 ... 1e-8 rad: beyond rounding, but near enough that a crossing of
+    the eye's own cone, at eps |o| / tilt, is rounded by more than the
+    trace's slack. The directions are left unnormalised.
     """
     unit = edge_unit(rng, grid)
     inner = grid.rho_min if grid.rho_min > 0.0 else grid.rho_edges[1]
@@ -172,6 +176,10 @@ def face_ray(rng, grid, family):
     if family == "edge_directions":
         eye = rng.uniform(0.05, 1.3) * grid.rho_max * edge_unit(rng, grid, 0.8)
         return eye, (eye + reach * edge_unit(rng, grid, 0.8)) - eye
+    if family == "off_own_ray":
+        across = np.cross(unit, rng.normal(size=3))
+        tilt = 10.0 ** rng.uniform(-13.0, -8.0) * across / np.linalg.norm(across)
+        return eye, (eye + reach * (unit + tilt)) - eye
     raise ValueError(f"unknown face family {family!r}")
 
 

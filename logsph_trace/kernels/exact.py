@@ -414,10 +414,20 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
     accuracy when the line passes near the centre: there ``c`` and every
     coefficient are small, where the origin's would be differences of large
     terms (rounding ``c`` by eps |o| moved crossings by sqrt(eps) |o|).
-    A root before ``branch_start`` belongs to the other branch. On the branch
-    before phi's turning point the earlier root is the crossing, after it the
-    later one. ``inf`` when no root qualifies: the crossing is at infinity (a
-    limit direction on the cone). The cone of phi = 0 (``nappe`` 0) is the
+    On its own nappe, a cone a branch counts is met once on each side of
+    phi's turning point, at most: before it the earlier root is the crossing,
+    after it the later one. Before the turning point the earlier root is
+    taken wherever it falls: it cannot be behind the start, whose zone lies
+    on the far side of the cone, except by rounding, and a root's rounding,
+    a few eps of its terms over the quadratic's slope, grows as the line
+    nears a generatrix (an eye on a cone, looking 5e-9 rad off it, had its
+    crossing rounded from 6.5e-8 to -3.5e-8). ``_clamp`` makes it now. After
+    the turning point a root before ``branch_start`` can be the other
+    branch's, and so is not the crossing when the direction lies on the cone
+    to within rounding (``PARALLEL``): the crossing is then at infinity
+    (``inf``). Otherwise the later root is behind the start by rounding
+    only, and the crossing is now (``earliest``); once it was dropped, the
+    ray kept the eye's zone for good. The cone of phi = 0 (``nappe`` 0) is the
     plane y = 0. A discriminant rounded below zero is taken as zero, a
     tangency and its double root, except when the direction lies on the cone
     (``a`` ~ 0, its sign rounding): then with the closest point at the
@@ -457,14 +467,16 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
         t2 = t_closest + u2
         # No real root and the direction on the cone to within rounding: the
         # line meets the cone at infinity only (see the docstring).
-        real = (disc >= 0.0) | (abs(a) > PARALLEL * (rise + spread))
-        # Selects, not branches: ``earliest <= t < inf`` also rejects NaN, and
-        # the nappe test keeps the cone half whose sign of y matches phi.
-        ok1 = (t1 >= earliest) & (t1 < inf) & (nappe * (cy + u1 * dy) >= 0.0)
-        ok2 = (t2 >= earliest) & (t2 < inf) & (nappe * (cy + u2 * dy) >= 0.0)
+        steep = abs(a) > PARALLEL * (rise + spread)
+        real = (disc >= 0.0) | steep
+        # Selects, not branches: ``t < inf`` also rejects NaN, and the nappe
+        # test keeps the cone half whose sign of y matches phi.
+        ok1 = (t1 < inf) & (nappe * (cy + u1 * dy) >= 0.0)
+        ok2 = (t2 < inf) & (nappe * (cy + u2 * dy) >= 0.0)
         latest = max(t1 if ok1 else -inf, t2 if ok2 else -inf)
         crossing = (min(t1 if ok1 else inf, t2 if ok2 else inf) if first_branch
-                    else (latest if latest > -inf else inf))
+                    else (latest if latest >= earliest
+                          else (earliest if steep & (latest > -inf) else inf)))
         # Met only at infinity: ahead on the nappe the direction points into,
         # else behind, where the ray starts within rounding of it: now.
         crossing = crossing if real else (inf if nappe * dy > 0.0 else earliest)
