@@ -5,6 +5,7 @@ import pytest
 from conftest import GRIDS, TANGENT_SLIVER, assert_matches_oracle, random_rays
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
+from oracle import UNRESOLVED_TANGENT
 
 import logsph_trace as lt
 
@@ -160,8 +161,13 @@ def _along_a_cone(grid, direction):
 # oracle finds. The trace found it or not by numpy's tan(pi/4) (numpy 1.24 gave
 # 1.0) before the edges' tangents came from math.tan. Its ends are 3.7e-7 from
 # the oracle's, more than the plain tangent tolerance (3.1e-7 here): hence the
-# distances' own tolerance, while slivers are still dropped at the plain one.
+# distances' own tolerance.
 @example(name="log_full", origin=(0.25, 0.25, 0.25), direction=(0.25, 0.25, -0.015625))
+# The same kind of tangency: the trace dips 2.5 sqrt(eps) L into the cell
+# above, the oracle 1.9 sqrt(eps) L, on either side of a threshold of 2. Such
+# a sliver may show or not up to 4 sqrt(eps) L (``UNRESOLVED_TANGENT``, the
+# contract in docs/geometry.md): slivers are dropped at that.
+@example(name="thin_shell", origin=(0.625, 0.625, 1.0), direction=(0.625, 0.625, -0.1875))
 def test_property_any_ray_matches_oracle(name, origin, direction):
     # Hypothesis favours round numbers and zeros: axis-aligned rays, rays
     # through the origin and along the y axis come up far more than at random,
@@ -172,7 +178,7 @@ def test_property_any_ray_matches_oracle(name, origin, direction):
     grid = GRIDS[name]()
     result = lt.trace(grid, origin, direction)
     scene = grid.rho_max + float(np.linalg.norm(origin))
-    assert_matches_oracle(grid, origin, direction, result, rel=TANGENT_SLIVER, scale=scene,
+    assert_matches_oracle(grid, origin, direction, result, rel=UNRESOLVED_TANGENT, scale=scene,
                           rel_distances=TANGENT_SLIVER * _along_a_cone(grid, direction))
 
 
