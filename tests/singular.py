@@ -129,7 +129,8 @@ def singular_rays(rng, grid, kind, n_rays, offsets=OFFSETS):
 # along the grid's edges, where the normalised direction is often collinear
 # with the eye to the last bit (o x d == 0) and otherwise within a few ulps.
 
-FACE_FAMILIES = ("own_ray", "near_own_ray", "across_the_axis", "edge_directions", "off_own_ray")
+FACE_FAMILIES = ("own_ray", "near_own_ray", "across_the_axis", "edge_directions", "off_own_ray",
+                 "beside_the_axis")
 
 
 def edge_unit(rng, grid, on_edge=0.6):
@@ -157,7 +158,11 @@ def face_ray(rng, grid, family):
     along its own line, through the centre or away from it, tilted by
     1e-13 ... 1e-8 rad: beyond rounding, but near enough that a crossing of
     the eye's own cone, at eps |o| / tilt, is rounded by more than the
-    trace's slack. The directions are left unnormalised.
+    trace's slack. ``beside_the_axis``: the eye 1e-17 ... 1e-12 of its height
+    from the y axis, on a half-plane, looking across the axis in that
+    half-plane's vertical plane (half the time tilted off it by 1e-16 ...
+    1e-9 rad): the line meets the axis, or passes it on a side its inputs
+    tell, near the eye. The directions are left unnormalised.
     """
     unit = edge_unit(rng, grid)
     inner = grid.rho_min if grid.rho_min > 0.0 else grid.rho_edges[1]
@@ -180,6 +185,18 @@ def face_ray(rng, grid, family):
         across = np.cross(unit, rng.normal(size=3))
         tilt = 10.0 ** rng.uniform(-13.0, -8.0) * across / np.linalg.norm(across)
         return eye, (eye + reach * (unit + tilt)) - eye
+    if family == "beside_the_axis":
+        theta = grid.theta_edges[rng.integers(0, grid.theta_edges.shape[0])]
+        side = np.array([np.sin(theta), 0.0, np.cos(theta)])
+        height = rng.uniform(-1.3, 1.3) * grid.rho_max
+        eye = np.array([0.0, height, 0.0]) + 10.0 ** rng.uniform(-17.0, -12.0) * abs(height) * side
+        target = np.array([0.0, rng.uniform(-1.3, 1.3) * grid.rho_max, 0.0]) - abs(reach) * side
+        direction = target - eye
+        if rng.random() < 0.5:
+            across = np.cross(direction, rng.normal(size=3))
+            direction = direction + (10.0 ** rng.uniform(-16.0, -9.0) * np.linalg.norm(direction)
+                                     / np.linalg.norm(across)) * across
+        return eye, direction
     raise ValueError(f"unknown face family {family!r}")
 
 

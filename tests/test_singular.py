@@ -96,7 +96,7 @@ def test_near_singular_rays_match_the_oracle_on_every_method(grid, kind):
     _check(grid, kind, offsets, origins, directions, cut, want_cut, "t_max")
 
 
-FACE_RAYS = 150  # 9 grids x 5 families x 150 = 6,750 rays, each traced 3 ways
+FACE_RAYS = 150  # 9 grids x 6 families x 150 = 8,100 rays, each traced 3 ways
 
 
 @pytest.mark.parametrize("family", FACE_FAMILIES)
@@ -201,6 +201,26 @@ def test_an_eye_beside_the_y_axis_with_a_steep_direction_sweeps_theta():
     message = compare((got.cells, got.t_enter, got.t_exit), want, grid.rho_max + 2.0)
     assert message is None, message
     assert got.cells[:4, 1].tolist() == [2, 3, 4, 5]
+
+
+def test_an_eye_beside_the_y_axis_on_a_half_plane_looking_across_it_turns_at_once():
+    """An eye 1.2e-16 from the y axis, on the seam's half-plane (theta = 1 rad),
+    looking across the axis in that half-plane's vertical plane: theta turns
+    by half a turn at t ~ 2e-16. The crossing of the eye's own half-plane,
+    the first of the sweep, is 0 / 0 written with the closest point ``c``,
+    whose rounding is eps |o|: it came out at t = 0.04, and the sweep waited
+    for it in the eye's sector. Written with the eye, whose distance from
+    the axis rounds to eps |o_h|, it is at 1e-15
+    (``face_rays``, ``edge_directions``, tilted; ``bench/results/faces.md``).
+    """
+    grid = GRIDS["seam_at_one_radian"]()
+    origin = np.array([1.0208093093276457e-16, -1.981183126404026, 6.554541197963054e-17])
+    direction = np.array([-0.4946042351021031, -0.8090169943749496, -0.3175817271689073])
+    got = lt.trace(grid, origin, direction)
+    want = oracle_trace(origin, direction, grid.rho_edges, grid.theta_edges, grid.phi_edges)
+    message = compare((got.cells, got.t_enter, got.t_exit), want, grid.rho_max + 2.0)
+    assert message is None, message
+    assert np.all(got.cells[:, 1] == 3)
 
 
 @st.composite

@@ -78,10 +78,19 @@ def _sphere_time(t_closest, h2, radius2, outward):
 
 
 @jit
-def _plane_time(t_closest, cx, cz, dx, dz, edge_sin, edge_cos):
+def _plane_time(eye_x, eye_z, dx, dz, edge_sin, edge_cos):
     """Crossing of the vertical plane holding the half-plane theta = edge (Eq. 9c),
-    measured from the closest point ``c`` (see ``line_geometry``)."""
-    return t_closest - (cx * edge_cos - cz * edge_sin) / (dx * edge_cos - dz * edge_sin)
+    on the clock of the eye (``eye_x``, ``eye_z``) the line was given by.
+
+    Measured from the eye, not from the closest point ``c``: the eye's x and z
+    are inputs, so the numerator is rounded by eps |o_h|, its distance from
+    the y axis, where ``c`` is itself rounded by eps |o|. Over a denominator
+    near 0 (a line nearly in the plane) the difference is the trace's: an eye
+    1.2e-16 from the axis at |o| = 2, on a half-plane and looking across the
+    axis within that plane, crossed its own half-plane at t = 0.04 by ``c``,
+    holding back the sweep past the axis, and at 1e-15 by the eye.
+    """
+    return -(eye_x * edge_cos - eye_z * edge_sin) / (dx * edge_cos - dz * edge_sin)
 
 
 @jit
@@ -186,8 +195,11 @@ def line_geometry(ox, oy, oz, dx, dy, dz):
     written with the origin, so rounding of eps |o| could move phi's turning
     point by eps |o|^2 / h, far past the cells it separates. Written with
     ``c`` (of size h) they are accurate to eps relative, and since ``c`` and
-    the cross product are computed once, every family plans and times one and
-    the same line, within eps |o| of the given one.
+    the cross product are computed once, every family plans one and the same
+    line, within eps |o| of the given one. Theta's crossing times alone are
+    measured from the eye (``_plane_time``): a half-plane's time needs only
+    the distance to its plane, which the eye's own coordinates give to
+    eps |o_h|, and ``c`` only to eps |o|.
     """
     t_closest = -(ox * dx + oy * dy + oz * dz)
     cross_x = oy * dz - oz * dy
@@ -358,11 +370,11 @@ def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_start, kp, kp_
 
 
 @jit(inline="always")
-def theta_times(cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, th_sigma, th_steps, t_axis,
+def theta_times(eye_x, eye_z, dx, dz, t_start, jt, jt_limit, th_sigma, th_steps, t_axis,
                 theta_sin, theta_cos, theta_full, t_final, slack, times, zones):
     """Phase 2 for theta: the crossing times and zones entered, in order, from
     ``t_start`` up to ``t_final``, into ``times[THETA, 1:]`` and ``zones[THETA, 1:]``;
-    returns their number."""
+    returns their number. ``eye_x``, ``eye_z``: the clock's origin (``_plane_time``)."""
     n_theta = theta_sin.shape[0] - 1
     n_zones_theta = n_theta if theta_full else n_theta + 1
     n_t = 0
@@ -376,7 +388,7 @@ def theta_times(cx, cz, dx, dz, t_closest, t_start, jt, jt_limit, th_sigma, th_s
     t_candidate = t_start
     for step in range(th_steps):
         edge = _theta_edge_ahead(zone, th_sigma, n_theta, theta_full)
-        t_candidate = _plane_time(t_closest, cx, cz, dx, dz, theta_sin[edge], theta_cos[edge])
+        t_candidate = _plane_time(eye_x, eye_z, dx, dz, theta_sin[edge], theta_cos[edge])
         t_low = t_run
         t_run, _ = _clamp(t_candidate, t_run, np.inf)
         if t_run > t_final:
@@ -774,9 +786,9 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
         # The last rho crossing leaves the region for good: nothing after it matters.
         t_final = times[RHO, n_r]
 
-        n_t = theta_times(cx, cz, dx, dz, t_closest, 0.0, jt, jt_limit, th_sigma, th_steps,
-                          t_axis, grid.theta_sin, grid.theta_cos, theta_full, t_final, slack,
-                          times, zones)
+        n_t = theta_times(ox, oz, dx, dz, 0.0, jt, jt_limit, th_sigma, th_steps, t_axis,
+                          grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times,
+                          zones)
         n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, 0.0, kp, kp_limit, t_turn, ph1_steps,
                         ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones)
 

@@ -198,9 +198,8 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
         oz if phi_from_sensor else sz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_phi,
         kp_sensor if phi_from_sensor else kp, kp_limit, grid, lookups,
     )
-    n_t = theta_times(cx, cz, dx, dz, t_closest, t_theta, jt, jt_limit, th_sigma, th_steps,
-                      t_axis, grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times,
-                      zones)
+    n_t = theta_times(ox, oz, dx, dz, t_theta, jt, jt_limit, th_sigma, th_steps, t_axis,
+                      grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times, zones)
     n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_phi, kp, kp_limit, t_turn, ph1_steps,
                     ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones)
     zones[THETA, 0] = jt
