@@ -380,6 +380,18 @@ def test_both_integrate_paths_near_singular_sets(name, sensor, kinds):
             fast.log_odds, _reference_log_odds(grid, points, sensor), err_msg=kind)
 
 
+def _sensor_on_a_cone(rng, grid):
+    """A unit vector on an interior edge's cone (half the time on a half-plane too), and a
+    sensor in the egocentric gap at a power of two times it, on either side."""
+    phi = grid.phi_edges[rng.integers(1, grid.phi_edges.shape[0] - 1)]
+    theta = rng.uniform(*grid.theta_range)
+    if rng.random() < 0.5:
+        theta = grid.theta_edges[rng.integers(0, grid.theta_edges.shape[0])]
+    unit = np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+    inside_gap = 2.0 ** np.floor(np.log2(grid.rho_min))
+    return unit, rng.choice([-1.0, 1.0]) * inside_gap * 2.0 ** -rng.integers(1, 4) * unit
+
+
 @pytest.mark.parametrize("name", ["log_full", "paper_dm", "uniform_partial_wide",
                                   "explicit_narrow", "thin_shell", "small_window"])
 def test_both_integrate_paths_on_lines_along_faces(name):
@@ -399,15 +411,9 @@ def test_both_integrate_paths_on_lines_along_faces(name):
 
     grid = GRIDS[name]()
     rng = np.random.default_rng(41)
-    inside_gap = 2.0 ** np.floor(np.log2(grid.rho_min))
     exact = 0
     for _ in range(40):
-        phi = grid.phi_edges[rng.integers(1, grid.phi_edges.shape[0] - 1)]
-        theta = rng.uniform(*grid.theta_range)
-        if rng.random() < 0.5:
-            theta = grid.theta_edges[rng.integers(0, grid.theta_edges.shape[0])]
-        unit = np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
-        sensor = rng.choice([-1.0, 1.0]) * inside_gap * 2.0 ** -rng.integers(1, 4) * unit
+        unit, sensor = _sensor_on_a_cone(rng, grid)
         reach = rng.uniform(0.2, 1.3, (16, 1)) * grid.rho_max * rng.choice([-1.0, 1.0], (16, 1))
         across = np.array([-sensor[0], 0.0, -sensor[2]])
         across[1] = rng.normal() * np.linalg.norm(sensor)
@@ -438,14 +444,8 @@ def test_both_integrate_paths_on_lines_just_off_faces(name):
 
     grid = GRIDS[name]()
     rng = np.random.default_rng(43)
-    inside_gap = 2.0 ** np.floor(np.log2(grid.rho_min))
     for _ in range(30):
-        phi = grid.phi_edges[rng.integers(1, grid.phi_edges.shape[0] - 1)]
-        theta = rng.uniform(*grid.theta_range)
-        if rng.random() < 0.5:
-            theta = grid.theta_edges[rng.integers(0, grid.theta_edges.shape[0])]
-        unit = np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
-        sensor = rng.choice([-1.0, 1.0]) * inside_gap * 2.0 ** -rng.integers(1, 4) * unit
+        unit, sensor = _sensor_on_a_cone(rng, grid)
         across = np.cross(unit, rng.normal(size=(16, 3)))
         across /= np.linalg.norm(across, axis=1, keepdims=True)
         tilt = 10.0 ** rng.uniform(-13.0, -8.0, (16, 1))
