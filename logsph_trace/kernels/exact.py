@@ -432,8 +432,10 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
     taken wherever it falls: it cannot be behind the start, whose zone lies
     on the far side of the cone, except by rounding, and a root's rounding,
     a few eps of its terms over the quadratic's slope, grows as the line
-    nears a generatrix (an eye on a cone, looking 5e-9 rad off it, had its
-    crossing rounded from 6.5e-8 to -3.5e-8). ``_clamp`` makes it now. After
+    nears a generatrix (an eye on a cone, looking 5e-9 rad off it, crosses
+    it at 6.5e-8; the rounding of the cone's tan^2 alone puts that at
+    -3.5e-8, while the eye's lookup has it on the cone's near side).
+    ``_clamp`` makes it now. After
     the turning point a root before ``branch_start`` can be the other
     branch's, and so is not the crossing when the direction lies on the cone
     to within rounding (``PARALLEL``): the crossing is then at infinity
