@@ -12,7 +12,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from singular import CLASSES, FACE_FAMILIES, face_rays, singular_rays
+from singular import CLASSES, FACE_FAMILIES, face_rays, singular_rays, unit_at
 
 import logsph_trace as lt
 
@@ -105,7 +105,7 @@ def map_cases(seed=8, n_points=45):
     for name, make in GRIDS.items():
         grid = make()
         phi, theta = grid.phi_edges[1], grid.theta_edges[1]
-        unit = np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+        unit = unit_at(phi, theta)
         on_faces = 2.0 ** np.floor(np.log2(grid.rho_min / 2)) * unit
         sensors = np.array([[0.0, 0.0, 0.0], [0.06, 0.08, 0.0],
                             [0.3 * grid.rho_min, 0.0, -0.2 * grid.rho_min],

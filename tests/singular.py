@@ -39,6 +39,11 @@ def _random_eye(rng, grid):
     return rng.uniform(-reach, reach, 3)
 
 
+def unit_at(phi, theta):
+    """The unit vector of elevation ``phi`` and azimuth ``theta`` (docs/geometry.md's frame)."""
+    return np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+
+
 def _interior(rng, edges):
     """An edge of the grid chosen at random, interior ones preferred."""
     if len(edges) > 2 and rng.random() < 0.8:
@@ -53,7 +58,7 @@ def _on_sphere_of_edges(rng, grid):
         rho = grid.rho_edges[1]
     theta = _interior(rng, grid.theta_edges)
     phi = _interior(rng, grid.phi_edges)
-    return rho * np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+    return rho * unit_at(phi, theta)
 
 
 def aim(rng, grid, kind, offset, eye):
@@ -96,8 +101,7 @@ def singular_ray(rng, grid, kind, offset):
             rho = rng.uniform(grid.rho_min, grid.rho_max)
         else:
             rho = rng.uniform(0.1, 1.0) * grid.rho_max
-        generatrix = np.array([np.cos(phi) * np.sin(theta), np.sin(phi),
-                               np.cos(phi) * np.cos(theta)])
+        generatrix = unit_at(phi, theta)
         across = np.array([np.cos(theta), 0.0, -np.sin(theta)])  # horizontal tangent
         normal = np.cross(generatrix, across)
         # Tangent to the cone at the touch point, within 1 rad of the horizontal.
@@ -142,7 +146,7 @@ def edge_unit(rng, grid, on_edge=0.6):
     theta = rng.uniform(*grid.theta_range)
     if rng.random() < on_edge:
         theta = grid.theta_edges[rng.integers(0, grid.theta_edges.shape[0])]
-    return np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+    return unit_at(phi, theta)
 
 
 def face_ray(rng, grid, family):

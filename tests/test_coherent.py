@@ -7,7 +7,7 @@ The flags must be exactly those of walking every ray.
 import numba
 import numpy as np
 import pytest
-from singular import OFFSETS, aim
+from singular import OFFSETS, aim, unit_at
 from test_occupancy import _reference_log_odds
 
 import logsph_trace as lt
@@ -132,7 +132,7 @@ def test_lines_along_faces_in_a_coherent_scan(scan, coherent_from_1000_rays):
     rng = np.random.default_rng(53)
     phi = grid.phi_edges[rng.integers(1, grid.phi_edges.size - 1)]
     theta = grid.theta_edges[rng.integers(0, grid.theta_edges.size)]
-    unit = np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+    unit = unit_at(phi, theta)
     sensor = 2.0 ** np.floor(np.log2(grid.rho_min / 2)) * unit
     reach = rng.uniform(0.2, 1.3, (2000, 1)) * grid.rho_max
     along = unit * rng.choice([-1.0, 1.0], (1000, 1))

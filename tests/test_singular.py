@@ -30,6 +30,7 @@ from singular import (
     face_rays,
     singular_ray,
     singular_rays,
+    unit_at,
 )
 
 import logsph_trace as lt
@@ -387,7 +388,7 @@ def _sensor_on_a_cone(rng, grid):
     theta = rng.uniform(*grid.theta_range)
     if rng.random() < 0.5:
         theta = grid.theta_edges[rng.integers(0, grid.theta_edges.shape[0])]
-    unit = np.array([np.cos(phi) * np.sin(theta), np.sin(phi), np.cos(phi) * np.cos(theta)])
+    unit = unit_at(phi, theta)
     inside_gap = 2.0 ** np.floor(np.log2(grid.rho_min))
     return unit, rng.choice([-1.0, 1.0]) * inside_gap * 2.0 ** -rng.integers(1, 4) * unit
 
