@@ -59,17 +59,22 @@ def _left_within_snap(t_now, t_next, snap, t_closest, h2, i, rho_sq):
 
 
 @jit(inline="always")
+def _near_either_edge(a, b, sines, cosines, low, high, within):
+    """Whether the point (a, b) of a half-plane through the axis lies within
+    ``within`` of the line at angle ``low`` or ``high`` (their ``sines`` and
+    ``cosines``): ``|a cos - b sin|``, its distance from each."""
+    return (abs(a * cosines[low] - b * sines[low]) <= within
+            or abs(a * cosines[high] - b * sines[high]) <= within)
+
+
+@jit(inline="always")
 def _near_theta_face(x, z, zone, within, grid):
     """Whether (x, ., z) lies within ``within`` of a half-plane's plane bounding
     azimuthal ``zone`` (``n_theta``: the rest of the turn of a partial range),
     where a lookup and a trace may round to different sides."""
-    sines = grid.theta_sin
-    cosines = grid.theta_cos
-    n = sines.shape[0] - 1
-    low = zone if zone < n else n
-    high = zone + 1 if zone < n else 0
-    return (abs(x * cosines[low] - z * sines[low]) <= within
-            or abs(x * cosines[high] - z * sines[high]) <= within)
+    n = grid.theta_sin.shape[0] - 1
+    return _near_either_edge(x, z, grid.theta_sin, grid.theta_cos, zone if zone < n else n,
+                             zone + 1 if zone < n else 0, within)
 
 
 @jit(inline="always")
@@ -77,14 +82,9 @@ def _near_phi_face(x, y, z, zone, within, grid):
     """Whether (x, y, z) lies within ``within`` of a cone bounding elevation
     ``zone`` (-1, ``n_phi``: below and above a partial range); see
     ``_near_theta_face``."""
-    sines = grid.phi_sin
-    cosines = grid.phi_cos
-    n = sines.shape[0] - 1
-    flat = math.sqrt(x * x + z * z)
-    low = max(zone, 0)
-    high = min(zone + 1, n)
-    return (abs(y * cosines[low] - flat * sines[low]) <= within
-            or abs(y * cosines[high] - flat * sines[high]) <= within)
+    n = grid.phi_sin.shape[0] - 1
+    return _near_either_edge(y, math.sqrt(x * x + z * z), grid.phi_sin, grid.phi_cos,
+                             max(zone, 0), min(zone + 1, n), within)
 
 
 @jit
