@@ -428,22 +428,25 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
     terms (rounding ``c`` by eps |o| moved crossings by sqrt(eps) |o|).
     On its own nappe, a cone a branch counts is met once on each side of
     phi's turning point, at most: before it the earlier root is the crossing,
-    after it the later one. Before the turning point the earlier root is
-    taken wherever it falls: it cannot be behind the start, whose zone lies
-    on the far side of the cone, except by rounding, and a root's rounding,
-    a few eps of its terms over the quadratic's slope, grows as the line
-    nears a generatrix (an eye on a cone, looking 5e-9 rad off it, crosses
-    it at 6.5e-8; the rounding of the cone's tan^2 alone puts that at
-    -3.5e-8, while the eye's lookup has it on the cone's near side).
-    ``_clamp`` makes it now. After
-    the turning point a root before ``branch_start`` can be the other
-    branch's, and so is not the crossing when the direction lies on the cone
-    to within rounding (``PARALLEL``): the crossing is then at infinity
-    (``inf``). Otherwise the later root is behind the start by rounding
-    only, and the crossing is now (``earliest``); once it was dropped, the
-    ray kept the eye's zone for good. The cone of phi = 0 (``nappe`` 0) is the
-    plane y = 0. A discriminant rounded below zero is taken as zero, a
-    tangency and its double root, except when the direction lies on the cone
+    after it the later one.
+    - Before the turning point the earlier root is taken wherever it falls.
+      It cannot be behind the start, whose zone lies on the far side of the
+      cone, except by rounding, and a root's rounding (a few eps of its terms
+      over the quadratic's slope) grows as the line nears a generatrix: an
+      eye on a cone, looking 5e-9 rad off it, crosses it at 6.5e-8, which
+      the rounding of the cone's tan^2 alone puts at -3.5e-8, while the
+      eye's lookup has it on the near side. ``_clamp`` makes it now.
+    - After the turning point a root before ``branch_start`` can be the other
+      branch's. When the direction lies on the cone to within rounding
+      (``PARALLEL``), the crossing is then at infinity (``inf``); otherwise
+      the later root is behind the start by rounding only, and the crossing
+      is now (``earliest``).
+    Both roots behind the start had been dropped, and the ray kept the eye's
+    zone for good.
+
+    The cone of phi = 0 (``nappe`` 0) is the plane y = 0. A discriminant
+    rounded below zero is taken as zero, a tangency and its double root,
+    except when the direction lies on the cone
     (``a`` ~ 0, its sign rounding): then with the closest point at the
     centre's height (``half_b`` ~ 0 too) the line only approaches the cone,
     at infinity, and the double root had put a crossing at the closest point.
