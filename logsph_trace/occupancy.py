@@ -105,7 +105,7 @@ def _zeroed_scratch(kind, shape, dtype):
         setattr(_flags, kind, held)
 
 
-def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
+def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view):
     """Flag the cells the rays from ``origin`` cross (``_kernels.mark_scan``).
 
     From inside the egocentric gap (``_coherent_plan``), most crossings lie
@@ -128,15 +128,18 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
        point is clear of the cell's faces, neither is walked.
 
     ``free`` and ``words``: the per-thread flags (``apply_scan``); ``hits``
-    gets each ray's hit cell. Returns how many rays were let start beyond
-    the gap's sphere, how many of those ended below it and how many stayed
-    in one column (the last two not walked; 0, 0, 0 when the scan was
-    walked ray by ray).
+    gets each ray's hit cell; ``view`` (a byte per column) the columns some
+    ray may meet (``_kernels.columns_in_view``; all of them when the scan
+    is walked ray by ray), the only ones ``apply_scan`` reads. Returns how
+    many rays were let start beyond the gap's sphere, how many of those
+    ended below it and how many stayed in one column (the last two not
+    walked; 0, 0, 0 when the scan was walked ray by ray).
     """
     args = grid.kernel_args()
     no_rows = np.empty(0, dtype=np.int64)
     no_marks = np.empty(0, dtype=np.uint8)
     per_side = _coherent_plan(grid, origin, points.shape[0])
+    view[:] = 1
     if per_side == 0:
         _kernels.mark_scan(origin, points, max_range, args, free, hits, no_rows, no_rows,
                            no_marks, 0)
@@ -152,7 +155,6 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words):
         return 0, 0, 0
     rays = np.empty(4)
     _kernels.ray_cone(coarse_bins[samples], coarse, rays)  # every ray's coarse bin holds a sample
-    view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
     _kernels.columns_in_view(origin, args, rays, view)
     skip = min(grid.n_rho - 1, 63)  # the masks' 64 bits
     masks = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint64)
@@ -360,11 +362,12 @@ class OccupancyGrid:
             hits = np.empty(points.shape[0], dtype=np.int64)
             with _zeroed_scratch("flags", (threads, -(-n_cells // 8)), np.uint64) as words:
                 free = words.view(np.uint8)  # the same memory, a byte per cell
+                view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
                 start = lap("prepare", start)
-                _mark_off_centre(grid, origin, points, max_range, free, hits, words)
+                _mark_off_centre(grid, origin, points, max_range, free, hits, words, view)
                 start = lap("mark", start)
                 _kernels.apply_scan(self.log_odds.reshape(-1), free, words, hits, grid.n_rho,
-                                    *update)
+                                    view, *update)
                 lap("apply", start)
         if labels is not None:
             if np.any(origin):  # the walk's hits are column-major (see apply_scan)

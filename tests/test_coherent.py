@@ -73,8 +73,9 @@ def _flags(grid, sensor, points, max_range=np.inf):
     words = np.zeros((numba.get_num_threads(), -(-n_cells // 8)), dtype=np.uint64)
     free = words.view(np.uint8)
     hits = np.empty(points.shape[0], dtype=np.int64)
+    view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
     counts = occ._mark_off_centre(grid, np.asarray(sensor, dtype=np.float64), points,
-                                  max_range, free, hits, words)
+                                  max_range, free, hits, words, view)
     return np.any(free[:, :n_cells] != 0, axis=0), hits, *counts
 
 
@@ -361,3 +362,38 @@ def test_near_masks_name_every_flagged_cell_below_skip(n_rho, skip):
         flagged = free[:, :n_cells].reshape(threads, n_columns, n_rho).any(axis=0)[:, :skip]
         want = (flagged * (1 << np.arange(skip, dtype=np.uint64))).sum(axis=1, dtype=np.uint64)
         np.testing.assert_array_equal(masks, np.where(view != 0, want, 0).astype(np.uint64))
+
+
+@pytest.mark.parametrize("n_rho", [3, 5, 8, 13, 64])
+def test_apply_scan_updates_each_flagged_cell_in_view_once_and_clears_the_flags(n_rho):
+    # Against a plain reading: words that span two or more columns (n_rho not
+    # a multiple of 8), in and out of view, flags from 1 to 3 rows, hits on
+    # flagged and unflagged cells, several hits in one cell.
+    rng = np.random.default_rng(n_rho)
+    n_columns = 41
+    n_cells = n_rho * n_columns
+    log_hit, log_miss, log_min, log_max = 0.85, -0.4, -2.0, 3.5
+    for threads, density in ((1, 0.3), (2, 0.05), (3, 0.6)):
+        view = (rng.random(n_columns) < 0.6).astype(np.uint8)
+        in_view = np.repeat(view != 0, n_rho)  # column-major: a column's cells in a row
+        words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
+        free = words.view(np.uint8)
+        free[:, :n_cells] = (rng.random((threads, n_cells)) < density) * in_view
+        hits = np.where(rng.random(300) < 0.5, rng.choice(np.flatnonzero(in_view), 300), -1)
+        start = rng.normal(0.0, 1.5, n_cells).astype(np.float32)
+        # The map is row-major, (i, column); the flags column-major, (column, i).
+        flagged = free[:, :n_cells].any(axis=0).reshape(n_columns, n_rho).T.ravel()
+        hit = np.zeros(n_cells, dtype=bool)
+        column, i = np.divmod(hits[hits >= 0], n_rho)
+        hit[i * n_columns + column] = True
+        # OctoMap's update, summed in float64 and rounded once: a hit wins.
+        wide = start.astype(np.float64)
+        want = wide.copy()
+        want[flagged] = np.maximum(wide[flagged] + log_miss, log_min)
+        want[hit] = np.minimum(wide[hit] + log_hit, log_max)
+        want = want.astype(np.float32)
+        got = start.copy()
+        kernels.apply_scan(got, free, words, hits, n_rho, view, log_hit, log_miss, log_min,
+                           log_max)
+        np.testing.assert_array_equal(got, want)
+        assert not words.any()  # ready for the next scan

@@ -35,10 +35,26 @@ from .locate import (
     theta_zone,
     theta_zone_near,
 )
+from .ordered import take
 
 # Per-thread flag bits of a cell in one scan.
 FREE = 1
 HIT = 2
+
+# The parallel loops whose items cost unequal amounts (rays walked from
+# different shells, columns in and out of view) are not cut into one equal
+# share per thread, Numba's schedule: the items of a scan's far side would
+# all fall to a few threads. Instead each thread, a worker, takes blocks of
+# items in turn from a counter (``ordered.take``), about ``TAKES_PER_WORKER``
+# blocks each.
+TAKES_PER_WORKER = 64
+
+
+@jit(inline="always")
+def per_take(n_items, workers, most):
+    """Items in a block taken by a worker: ``most``, or fewer down to 16, so
+    that each of ``workers`` takes about ``TAKES_PER_WORKER`` blocks."""
+    return max(min(most, n_items // (TAKES_PER_WORKER * workers)), 16)
 
 
 @jit(inline="always")
@@ -447,8 +463,9 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
     """Walk the ray from ``origin`` to every point of a scan (see ``walk_ray``).
 
     ``max_range``: rays are cut there and end in no hit (``inf``: none).
-    ``grid`` is the grid's ``GridArrays``. ``free`` (threads, n_cells) uint8
-    has one row per thread, so no two threads write the same place;
+    ``grid`` is the grid's ``GridArrays``. ``free`` (workers, n_cells) uint8
+    has one row per worker, so no two threads write the same place (a
+    worker per thread, each taking blocks of rays in turn: ``per_take``);
     ``hits[row]`` gets ray ``row``'s hit cell (column-major index) or -1.
     ``rows``: the rays to walk (empty: all). A ray may start on sphere
     ``limit`` of its direction bin (``bins``), ``skip`` at most (see
@@ -477,46 +494,55 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
     skipped = 0
     ended = 0
     straight = 0
-    for block in prange((n_rays + BLOCK - 1) // BLOCK):
-        row_free = free[numba.get_thread_id()]
+    workers = free.shape[0]
+    step = per_take(n_rays, workers, BLOCK)
+    n_blocks = (n_rays + step - 1) // step
+    counter = np.zeros(1, dtype=np.int64)
+    for worker in prange(workers):
+        row_free = free[worker]
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
         guesses = np.zeros(3, dtype=np.int64)
-        for n in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            row = n if rows.shape[0] == 0 else rows[n]
-            dx, dy, dz, distance, is_hit, is_ray = sensor_ray(points, row, ox, oy, oz, max_range)
-            hits[row] = -1
-            if not is_ray:
-                continue
-            start = min(np.int64(limit[bins[row]]), skip) if skip > 0 else 0
-            skipped += start > 0
-            if start > 0:
-                x = ox + distance * dx
-                y = oy + distance * dy
-                z = oz + distance * dz
-                i = _end_zones(x, y, z, margin, grid, guesses)
-                cell = ((guesses[1] * n_phi + guesses[2]) * n_rho + i)
-                if i < start:
-                    if is_hit and i >= 0:
-                        hits[row] = cell
-                    ended += 1
+        block = take(counter, n_blocks)
+        while block >= 0:
+            guesses[:] = 0
+            for n in range(block * step, min(n_rays, (block + 1) * step)):
+                row = n if rows.shape[0] == 0 else rows[n]
+                dx, dy, dz, distance, is_hit, is_ray = sensor_ray(points, row, ox, oy, oz,
+                                                                  max_range)
+                hits[row] = -1
+                if not is_ray:
                     continue
-                if i < n_rho:
-                    t_closest, h2, _, _, _ = line_geometry(ox, oy, oz, dx, dy, dz)
-                    t_in = _sphere_time(t_closest, h2, grid.rho_sq[start], True)
-                    if _stays_in_column(ox + t_in * dx, oy + t_in * dy, oz + t_in * dz, x, y, z,
-                                        dx, dy, dz, distance - t_in, guesses[1], guesses[2],
-                                        margin, grid):
-                        # Whole shells from the start sphere to the end cell.
-                        for shell in range(start, i + (not is_hit)):
-                            row_free[cell - i + shell] = 1
-                        if is_hit:
+                start = min(np.int64(limit[bins[row]]), skip) if skip > 0 else 0
+                skipped += start > 0
+                if start > 0:
+                    x = ox + distance * dx
+                    y = oy + distance * dy
+                    z = oz + distance * dz
+                    i = _end_zones(x, y, z, margin, grid, guesses)
+                    cell = ((guesses[1] * n_phi + guesses[2]) * n_rho + i)
+                    if i < start:
+                        if is_hit and i >= 0:
                             hits[row] = cell
-                        straight += 1
+                        ended += 1
                         continue
-            hits[row] = walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, ir, jt, kp, grid,
-                                 times, zones, lookups, row_free, start)
+                    if i < n_rho:
+                        t_closest, h2, _, _, _ = line_geometry(ox, oy, oz, dx, dy, dz)
+                        t_in = _sphere_time(t_closest, h2, grid.rho_sq[start], True)
+                        if _stays_in_column(ox + t_in * dx, oy + t_in * dy, oz + t_in * dz, x, y, z,
+                                            dx, dy, dz, distance - t_in, guesses[1], guesses[2],
+                                            margin, grid):
+                            # Whole shells from the start sphere to the end cell.
+                            for shell in range(start, i + (not is_hit)):
+                                row_free[cell - i + shell] = 1
+                            if is_hit:
+                                hits[row] = cell
+                            straight += 1
+                            continue
+                hits[row] = walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, ir, jt, kp, grid,
+                                     times, zones, lookups, row_free, start)
+            block = take(counter, n_blocks)
     return skipped, ended, straight
 
 
@@ -743,27 +769,37 @@ def columns_in_view(origin, grid, rays, view):
 def near_masks(free, words, n_rho, skip, view, masks):
     """Bit i of ``masks[column]``: a thread flagged cell (i, column), for i < ``skip``.
 
-    Only columns in ``view`` are read (no ray meets the others). ``words`` is
-    ``free`` seen as uint64: eight cells with no flag are passed over at once.
+    Only columns in ``view`` are read (no ray meets the others), in blocks
+    taken in turn (``per_take``). ``words`` is ``free`` seen as uint64: eight
+    cells with no flag are passed over at once.
     """
     threads = free.shape[0]
-    for column in prange(masks.shape[0]):
-        mask = np.uint64(0)
-        i = 0
-        while i < (skip if view[column] else 0):
-            # The word holding cell i, every thread's flags OR-ed: its bytes
-            # (little-endian) are the cells from ``index`` to the word's end.
-            index = column * n_rho + i
-            word = index // 8
-            flags = words[0, word]
-            for thread in range(1, threads):
-                flags |= words[thread, word]
-            if flags != 0:
-                for cell in range(index, min(word * 8 + 8, column * n_rho + skip)):
-                    if (flags >> np.uint64(8 * (cell - word * 8))) & np.uint64(0xFF) != 0:
-                        mask |= np.uint64(1) << np.uint64(cell - column * n_rho)
-            i = word * 8 + 8 - column * n_rho
-        masks[column] = mask
+    n_columns = masks.shape[0]
+    step = per_take(n_columns, threads, BLOCK)
+    n_blocks = (n_columns + step - 1) // step
+    counter = np.zeros(1, dtype=np.int64)
+    for worker in prange(threads):
+        block = take(counter, n_blocks)
+        while block >= 0:
+            for column in range(block * step, min(n_columns, (block + 1) * step)):
+                mask = np.uint64(0)
+                i = 0
+                while i < (skip if view[column] else 0):
+                    # The word holding cell i, every thread's flags OR-ed: its
+                    # bytes (little-endian) are the cells from ``index`` to the
+                    # word's end.
+                    index = column * n_rho + i
+                    word = index // 8
+                    flags = words[0, word]
+                    for thread in range(1, threads):
+                        flags |= words[thread, word]
+                    if flags != 0:
+                        for cell in range(index, min(word * 8 + 8, column * n_rho + skip)):
+                            if (flags >> np.uint64(8 * (cell - word * 8))) & np.uint64(0xFF):
+                                mask |= np.uint64(1) << np.uint64(cell - column * n_rho)
+                    i = word * 8 + 8 - column * n_rho
+                masks[column] = mask
+            block = take(counter, n_blocks)
 
 
 @jit(inline="always")
@@ -913,8 +949,9 @@ def mark_candidates(origin, grid, masks, skip, q, rays, view, limits, limit):
     full), so neighbours are taken in the 3 x 3 x 3 block around a cell, and
     every column of a polar row neighbours the others. ``rays``: a cone (axis
     x, y, z and half-angle) holding every ray's direction; columns not in
-    ``view`` (``columns_in_view``) are passed over. ``limits``: (threads,
-    bins) uint8 scratch, one row per thread.
+    ``view`` (``columns_in_view``) are passed over; blocks of columns are
+    taken in turn (``per_take``). ``limits``: (workers, bins) uint8 scratch,
+    one row per worker (a worker per thread).
     """
     n_theta = grid.theta_edges.shape[0] - 1
     n_phi = grid.phi_edges.shape[0] - 1
@@ -930,14 +967,20 @@ def mark_candidates(origin, grid, masks, skip, q, rays, view, limits, limit):
         for thread in range(threads):
             limits[thread, block * BLOCK:min(n_bins, (block + 1) * BLOCK)] = skip
     n_columns = n_theta * n_phi
-    for block in prange((n_columns + BLOCK - 1) // BLOCK):
+    step = per_take(n_columns, threads, BLOCK)
+    n_blocks = (n_columns + step - 1) // step
+    counter = np.zeros(1, dtype=np.int64)
+    for worker in prange(threads):
         corners = np.empty((3, MAX_CORNERS), dtype=np.float64)
-        row = limits[numba.get_thread_id()]
-        for column in range(block * BLOCK, min(n_columns, (block + 1) * BLOCK)):
-            if view[column]:
-                _mark_column_candidates(origin[0], origin[1], origin[2], grid, masks, skip, q,
-                                        column // n_phi, column % n_phi, below, pole_low,
-                                        pole_high, rays, corners, row)
+        row = limits[worker]
+        block = take(counter, n_blocks)
+        while block >= 0:
+            for column in range(block * step, min(n_columns, (block + 1) * step)):
+                if view[column]:
+                    _mark_column_candidates(origin[0], origin[1], origin[2], grid, masks, skip,
+                                            q, column // n_phi, column % n_phi, below, pole_low,
+                                            pole_high, rays, corners, row)
+            block = take(counter, n_blocks)
     for block in prange((n_bins + BLOCK - 1) // BLOCK):
         for b in range(block * BLOCK, min(n_bins, (block + 1) * BLOCK)):
             lowest = limits[0, b]
@@ -985,8 +1028,46 @@ def _update(log_odds, cell, hit, free, log_hit, log_miss, log_min, log_max):
         log_odds[cell] = max(np.float64(log_odds[cell]) + log_miss, log_min)
 
 
+@jit(inline="always")
+def _apply_word(log_odds, words, word, n_rho, n_columns, log_hit, log_miss, log_min, log_max):
+    """``apply_scan`` for the eight cells of ``word``: update those any thread
+    flagged, then clear the word in every thread's row."""
+    threads = words.shape[0]
+    any_bits = words[0, word]
+    for thread in range(1, threads):
+        any_bits |= words[thread, word]
+    if any_bits == 0:
+        return
+    n_cells = n_columns * n_rho
+    for index in range(word * 8, min(word * 8 + 8, n_cells)):
+        # Byte ``index - 8 word`` of the word (little-endian, as every
+        # platform Numba runs on): every thread's flags of the cell at once.
+        bits = np.uint8((any_bits >> np.uint64(8 * (index - word * 8))) & np.uint64(0xFF))
+        if bits != 0:
+            i = index % n_rho
+            _update(log_odds, i * n_columns + index // n_rho, (bits & HIT) != 0,
+                    (bits & FREE) != 0, log_hit, log_miss, log_min, log_max)
+    # Cleared only here, for words that held flags: clearing in the OR
+    # loop above made it branch on every word, most of them zero (apply
+    # 1.5 -> 2.6 ms on one thread, table scan 10 cm off).
+    for thread in range(threads):
+        words[thread, word] = 0
+
+
+@jit(inline="always")
+def _first_word_of(column, n_rho, view):
+    """The first word ``column``'s walk in ``apply_scan`` owns: a word that
+    begins in an earlier column belongs to the first column in view it
+    touches."""
+    word = column * n_rho // 8
+    for earlier in range(word * 8 // n_rho, column):
+        if view[earlier]:
+            return word + 1
+    return word
+
+
 @jit(parallel=True)
-def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, log_max):
+def apply_scan(log_odds, free, words, hits, n_rho, view, log_hit, log_miss, log_min, log_max):
     """OctoMap's update, once per cell per scan: a hit wins over a miss; clamped.
 
     ``free`` is indexed column-major, ``(j * n_phi + k) * n_rho + i``, so that
@@ -996,6 +1077,14 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
     more than this pass. ``words`` is ``free`` seen as uint64 (rows padded to
     a multiple of 8 bytes): most of a scan's cells are untouched, and eight
     at a time are skipped with one test.
+
+    Only the columns in ``view`` (a byte per column) are read: no ray of the
+    scan meets the others, so their flags are zero. Every thread's row is
+    read there, so this keeps the reading from growing with the threads
+    over the whole map (16 rows of 4 MB on the benchmark's map). A word
+    that spans two columns is read once, by the first of them in view.
+    Blocks of columns are taken in turn (``per_take``): the columns in view
+    lie together.
 
     The hits go into row 0 first, on all threads: ``HIT`` replaces the byte,
     since a hit wins over a miss, and rays that end in one cell store the
@@ -1008,28 +1097,21 @@ def apply_scan(log_odds, free, words, hits, n_rho, log_hit, log_miss, log_min, l
         for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             if hits[ray] >= 0:
                 store_relaxed(first, hits[ray], HIT)
-    threads = free.shape[0]
-    n_cells = log_odds.shape[0]
-    n_columns = n_cells // n_rho
-    for word in prange(words.shape[1]):
-        any_bits = words[0, word]
-        for thread in range(1, threads):
-            any_bits |= words[thread, word]
-        if any_bits == 0:
-            continue
-        for index in range(word * 8, min(word * 8 + 8, n_cells)):
-            # Byte ``index - 8 word`` of the word (little-endian, as every
-            # platform Numba runs on): every thread's flags of the cell at once.
-            bits = np.uint8((any_bits >> np.uint64(8 * (index - word * 8))) & np.uint64(0xFF))
-            if bits != 0:
-                i = index % n_rho
-                _update(log_odds, i * n_columns + index // n_rho, (bits & HIT) != 0,
-                        (bits & FREE) != 0, log_hit, log_miss, log_min, log_max)
-        # Cleared only here, for words that held flags: clearing in the OR
-        # loop above made it branch on every word, most of them zero (apply
-        # 1.5 -> 2.6 ms on one thread, table scan 10 cm off).
-        for thread in range(threads):
-            words[thread, word] = 0
+    workers = free.shape[0]
+    n_columns = log_odds.shape[0] // n_rho
+    step = per_take(n_columns, workers, BLOCK)
+    n_blocks = (n_columns + step - 1) // step
+    counter = np.zeros(1, dtype=np.int64)
+    for worker in prange(workers):
+        block = take(counter, n_blocks)
+        while block >= 0:
+            for column in range(block * step, min(n_columns, (block + 1) * step)):
+                if view[column]:
+                    for word in range(_first_word_of(column, n_rho, view),
+                                      ((column + 1) * n_rho - 1) // 8 + 1):
+                        _apply_word(log_odds, words, word, n_rho, n_columns, log_hit, log_miss,
+                                    log_min, log_max)
+            block = take(counter, n_blocks)
 
 
 @jit(inline="always")
@@ -1111,11 +1193,13 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
     marks the hit cells so a hit wins and each is updated once. Only the
     columns' free runs and the hits are visited, not the whole map.
 
-    All three passes run on all threads. Rays that end in one cell store the
-    same mark (``atomic.store_relaxed``); in the last pass exactly one of
-    them takes it back (``atomic.exchange``) and updates the cell, so the map
-    does not depend on the thread count. ``free_extent`` and ``hit_mask``
-    are left zero, ready for the next scan.
+    All three passes run on all threads; the columns, whose free runs lie
+    together where the scan looks, in blocks taken in turn (``per_take``).
+    Rays that end in one cell store the same mark
+    (``atomic.store_relaxed``); in the last pass exactly one of them takes it
+    back (``atomic.exchange``) and updates the cell, so the map does not
+    depend on the thread count. ``free_extent`` and ``hit_mask`` are left
+    zero, ready for the next scan.
     """
     n_rays = hits.shape[0]
     n_blocks = (n_rays + BLOCK - 1) // BLOCK
@@ -1125,17 +1209,25 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
                 store_relaxed(hit_mask, hits[ray], 1)
     threads = free_extent.shape[0]
     n_columns = n_theta * n_phi
-    for column in prange(n_columns):
-        extent = free_extent[0, column]
-        for thread in range(1, threads):
-            extent = max(extent, free_extent[thread, column])
-        if extent > 0:
-            for thread in range(threads):
-                free_extent[thread, column] = 0
-        for shell in range(extent):
-            cell = shell * n_columns + column
-            if hit_mask[cell] == 0:
-                _update(log_odds, cell, False, True, log_hit, log_miss, log_min, log_max)
+    step = per_take(n_columns, threads, BLOCK)
+    n_column_blocks = (n_columns + step - 1) // step
+    counter = np.zeros(1, dtype=np.int64)
+    for worker in prange(threads):  # the columns in view lie together: blocks in turn
+        column_block = take(counter, n_column_blocks)
+        while column_block >= 0:
+            for column in range(column_block * step, min(n_columns, (column_block + 1) * step)):
+                extent = free_extent[0, column]
+                for thread in range(1, threads):
+                    extent = max(extent, free_extent[thread, column])
+                if extent > 0:
+                    for thread in range(threads):
+                        free_extent[thread, column] = 0
+                for shell in range(extent):
+                    cell = shell * n_columns + column
+                    if hit_mask[cell] == 0:
+                        _update(log_odds, cell, False, True, log_hit, log_miss, log_min,
+                                log_max)
+            column_block = take(counter, n_column_blocks)
     for block in prange(n_blocks):
         for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             cell = hits[ray]
