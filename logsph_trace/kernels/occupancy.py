@@ -1,7 +1,8 @@
 """Occupancy kernels (``@jit`` only): integrate a scan, first-occupied probabilities.
 
-Parallel work never shares a write: each thread marks its own row of the
-free/hit flag arrays, and a second ``prange`` over cells combines the rows.
+Parallel work never shares a write: each worker (one per thread) marks its
+own row of the free/hit flag arrays, and a second parallel pass over cells
+combines the rows.
 """
 
 import math
@@ -42,18 +43,21 @@ HIT = 2
 
 # The parallel loops whose items cost unequal amounts (rays walked from
 # different shells, columns in and out of view) are not cut into one equal
-# share per thread, Numba's schedule: the items of a scan's far side would
-# all fall to a few threads. Instead each thread, a worker, takes blocks of
-# items in turn from a counter (``ordered.take``), about ``TAKES_PER_WORKER``
-# blocks each.
+# share per thread, Numba's schedule: the costly items lie together, where
+# the scan looks, and would fall to a few of the shares. Instead each
+# thread, a worker, takes blocks of items in turn from a counter
+# (``ordered.take``), about ``TAKES_PER_WORKER`` blocks each.
 TAKES_PER_WORKER = 64
 
 
 @jit(inline="always")
-def per_take(n_items, workers, most):
-    """Items in a block taken by a worker: ``most``, or fewer down to 16, so
-    that each of ``workers`` takes about ``TAKES_PER_WORKER`` blocks."""
-    return max(min(most, n_items // (TAKES_PER_WORKER * workers)), 16)
+def in_turn(n_items, workers, most):
+    """Blocks of ``n_items`` for ``workers`` to take in turn: (items a block,
+    blocks, the counter to ``ordered.take`` them from). A block holds
+    ``most`` items, or fewer down to 16, so that each worker takes about
+    ``TAKES_PER_WORKER`` of them."""
+    step = max(min(most, n_items // (TAKES_PER_WORKER * workers)), 16)
+    return step, (n_items + step - 1) // step, np.zeros(1, dtype=np.int64)
 
 
 @jit(inline="always")
@@ -464,7 +468,7 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
     ``max_range``: rays are cut there and end in no hit (``inf``: none).
     ``grid`` is the grid's ``GridArrays``. ``free`` (workers, n_cells) uint8
     has one row per worker, so no two threads write the same place (a
-    worker per thread, each taking blocks of rays in turn: ``per_take``);
+    worker per thread, each taking blocks of rays in turn: ``in_turn``);
     ``hits[row]`` gets ray ``row``'s hit cell (column-major index) or -1.
     ``rows``: the rays to walk (empty: all). A ray may start on sphere
     ``limit`` of its direction bin (``bins``), ``skip`` at most (see
@@ -494,9 +498,7 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
     ended = 0
     straight = 0
     workers = free.shape[0]
-    step = per_take(n_rays, workers, BLOCK)
-    n_blocks = (n_rays + step - 1) // step
-    counter = np.zeros(1, dtype=np.int64)
+    step, n_blocks, counter = in_turn(n_rays, workers, BLOCK)
     for worker in prange(workers):
         row_free = free[worker]
         times = np.empty((3, size), dtype=np.float64)
@@ -769,14 +771,12 @@ def near_masks(free, words, n_rho, skip, view, masks):
     """Bit i of ``masks[column]``: a thread flagged cell (i, column), for i < ``skip``.
 
     Only columns in ``view`` are read (no ray meets the others), in blocks
-    taken in turn (``per_take``). ``words`` is ``free`` seen as uint64: eight
+    taken in turn (``in_turn``). ``words`` is ``free`` seen as uint64: eight
     cells with no flag are passed over at once.
     """
     threads = free.shape[0]
     n_columns = masks.shape[0]
-    step = per_take(n_columns, threads, BLOCK)
-    n_blocks = (n_columns + step - 1) // step
-    counter = np.zeros(1, dtype=np.int64)
+    step, n_blocks, counter = in_turn(n_columns, threads, BLOCK)
     for worker in prange(threads):
         block = take(counter, n_blocks)
         while block >= 0:
@@ -949,7 +949,7 @@ def mark_candidates(origin, grid, masks, skip, q, rays, view, limits, limit):
     every column of a polar row neighbours the others. ``rays``: a cone (axis
     x, y, z and half-angle) holding every ray's direction; columns not in
     ``view`` (``columns_in_view``) are passed over; blocks of columns are
-    taken in turn (``per_take``). ``limits``: (workers, bins) uint8 scratch,
+    taken in turn (``in_turn``). ``limits``: (workers, bins) uint8 scratch,
     one row per worker (a worker per thread).
     """
     n_theta = grid.theta_edges.shape[0] - 1
@@ -966,9 +966,7 @@ def mark_candidates(origin, grid, masks, skip, q, rays, view, limits, limit):
         for thread in range(threads):
             limits[thread, block * BLOCK:min(n_bins, (block + 1) * BLOCK)] = skip
     n_columns = n_theta * n_phi
-    step = per_take(n_columns, threads, BLOCK)
-    n_blocks = (n_columns + step - 1) // step
-    counter = np.zeros(1, dtype=np.int64)
+    step, n_blocks, counter = in_turn(n_columns, threads, BLOCK)
     for worker in prange(threads):
         corners = np.empty((3, MAX_CORNERS), dtype=np.float64)
         row = limits[worker]
@@ -1082,7 +1080,7 @@ def apply_scan(log_odds, free, words, hits, n_rho, view, log_hit, log_miss, log_
     read there, so this keeps the reading from growing with the threads
     over the whole map (16 rows of 4 MB on the benchmark's map). A word
     that spans two columns is read once, by the first of them in view.
-    Blocks of columns are taken in turn (``per_take``): the columns in view
+    Blocks of columns are taken in turn (``in_turn``): the columns in view
     lie together.
 
     The hits go into row 0 first, on all threads: ``HIT`` replaces the byte,
@@ -1098,9 +1096,7 @@ def apply_scan(log_odds, free, words, hits, n_rho, view, log_hit, log_miss, log_
                 store_relaxed(first, hits[ray], HIT)
     workers = free.shape[0]
     n_columns = log_odds.shape[0] // n_rho
-    step = per_take(n_columns, workers, BLOCK)
-    n_blocks = (n_columns + step - 1) // step
-    counter = np.zeros(1, dtype=np.int64)
+    step, n_blocks, counter = in_turn(n_columns, workers, BLOCK)
     for worker in prange(workers):
         block = take(counter, n_blocks)
         while block >= 0:
@@ -1169,7 +1165,7 @@ def mark_radial(points, max_range, grid, free_extent, hits):
     ``rho`` itself) stops before crossing. ``free_extent`` (workers, n_theta
     * n_phi) int64 records, per worker and column, how many shells from the
     centre are free (a worker per thread, taking blocks of rays in turn:
-    ``per_take``); ``hits[row]`` gets the map index of ray ``row``'s hit
+    ``in_turn``); ``hits[row]`` gets the map index of ray ``row``'s hit
     cell, or -1. Three lookups per ray instead of a traversal
     (``radial_ray``).
     """
@@ -1180,9 +1176,7 @@ def mark_radial(points, max_range, grid, free_extent, hits):
     workers = free_extent.shape[0]
     # Up to 2,048 rays a block: on few threads, longer runs of neighbouring
     # rays (blocks of 256 made the table scan 2-4% slower on 2 threads).
-    step = per_take(n_rays, workers, 8 * BLOCK)
-    n_blocks = (n_rays + step - 1) // step
-    counter = np.zeros(1, dtype=np.int64)
+    step, n_blocks, counter = in_turn(n_rays, workers, 8 * BLOCK)
     for worker in prange(workers):
         block = take(counter, n_blocks)
         while block >= 0:
@@ -1204,7 +1198,7 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
     columns' free runs and the hits are visited, not the whole map.
 
     All three passes run on all threads; the columns, whose free runs lie
-    together where the scan looks, in blocks taken in turn (``per_take``).
+    together where the scan looks, in blocks taken in turn (``in_turn``).
     Rays that end in one cell store the same mark
     (``atomic.store_relaxed``); in the last pass exactly one of them takes it
     back (``atomic.exchange``) and updates the cell, so the map does not
@@ -1219,9 +1213,7 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
                 store_relaxed(hit_mask, hits[ray], 1)
     threads = free_extent.shape[0]
     n_columns = n_theta * n_phi
-    step = per_take(n_columns, threads, 8 * BLOCK)
-    n_column_blocks = (n_columns + step - 1) // step
-    counter = np.zeros(1, dtype=np.int64)
+    step, n_column_blocks, counter = in_turn(n_columns, threads, 8 * BLOCK)
     for worker in prange(threads):  # the columns in view lie together: blocks in turn
         column_block = take(counter, n_column_blocks)
         while column_block >= 0:
