@@ -1213,7 +1213,7 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
                 store_relaxed(hit_mask, hits[ray], 1)
     threads = free_extent.shape[0]
     n_columns = n_theta * n_phi
-    step, n_column_blocks, counter = in_turn(n_columns, threads, 8 * BLOCK)
+    step, n_column_blocks, counter = in_turn(n_columns, threads, BLOCK)
     for worker in prange(threads):  # the columns in view lie together: blocks in turn
         column_block = take(counter, n_column_blocks)
         while column_block >= 0:
