@@ -223,6 +223,30 @@ def test_the_real_frame_off_the_centre_equals_walking_every_ray(monkeypatch):
     assert _flags(grid, sensor, points)[2] > 0.8 * points.shape[0]
 
 
+@pytest.mark.parametrize("scan", [0, 2, 5])
+def test_points_at_the_sensor_are_no_rays_in_a_coherent_scan(scan, coherent_from_1000_rays):
+    # A point at the sensor is no ray: its hit is -1, whatever the hits array
+    # held before (it once kept that, and the map update wrote there).
+    grid, sensor, forward, focal = SCANS[scan]
+    rng = np.random.default_rng(47)
+    sensor = np.asarray(sensor)
+    points = _camera_scan(rng, sensor, forward, focal=focal)
+    at_sensor = rng.random(points.shape[0]) < 0.05
+    at_sensor[:3] = True  # the first ray of the scan, and so of its bin
+    points[at_sensor] = sensor
+    got = lt.OccupancyGrid(grid).integrate(points, sensor)
+    np.testing.assert_array_equal(got.log_odds, _reference_log_odds(grid, points, sensor))
+    n_cells = int(np.prod(grid.shape))
+    words = np.zeros((numba.get_num_threads(), -(-n_cells // 8)), dtype=np.uint64)
+    hits = np.full(points.shape[0], 2 * n_cells, dtype=np.int64)
+    view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
+    skipped = occ._mark_off_centre(grid, sensor, points, np.inf, words.view(np.uint8), hits,
+                                   words, view)[0]
+    assert skipped > 0  # the coherent scan
+    assert np.all(hits[at_sensor] == -1)
+    assert np.all(hits < n_cells)
+
+
 def _inside(rng, grid, i, j, k, n):
     """``n`` points of cell (i, j, k): random, its corners and its edges' middles."""
     rho = np.r_[rng.uniform(grid.rho_edges[i], grid.rho_edges[i + 1], n),

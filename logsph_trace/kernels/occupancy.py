@@ -704,7 +704,9 @@ def ray_cone(bins, q, cone):
 
 @jit(runtime=True)
 def split_samples(coarse, n_coarse):
-    """The first ray of each coarse bin (the samples), and the other rays, in order."""
+    """The first ray of each coarse bin (the samples), and the other rows, in
+    order: a row with no ray (bin -1) among the others, whose walk gives it
+    no hit."""
     taken = np.zeros(n_coarse, dtype=np.uint8)
     samples = np.empty(coarse.shape[0], dtype=np.int64)
     others = np.empty(coarse.shape[0], dtype=np.int64)
@@ -712,9 +714,7 @@ def split_samples(coarse, n_coarse):
     n_others = 0
     for row in range(coarse.shape[0]):
         b = coarse[row]
-        if b < 0:
-            continue
-        if taken[b] == 0:
+        if b >= 0 and taken[b] == 0:
             taken[b] = 1
             samples[n_samples] = row
             n_samples += 1
@@ -1090,9 +1090,10 @@ def apply_scan(log_odds, free, words, hits, n_rho, view, log_hit, log_miss, log_
     """
     first = free[0]
     n_rays = hits.shape[0]
+    n_cells = log_odds.shape[0]
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            if hits[ray] >= 0:
+            if 0 <= hits[ray] < n_cells:  # -1: no hit (the bound: no store outside the map)
                 store_relaxed(first, hits[ray], HIT)
     workers = free.shape[0]
     n_columns = log_odds.shape[0] // n_rho
@@ -1207,9 +1208,10 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
     """
     n_rays = hits.shape[0]
     n_blocks = (n_rays + BLOCK - 1) // BLOCK
+    n_cells = log_odds.shape[0]
     for block in prange(n_blocks):
         for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            if hits[ray] >= 0:
+            if 0 <= hits[ray] < n_cells:  # -1: no hit (the bound: no store outside the map)
                 store_relaxed(hit_mask, hits[ray], 1)
     threads = free_extent.shape[0]
     n_columns = n_theta * n_phi
@@ -1234,5 +1236,6 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
         for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             cell = hits[ray]
             # The load skips the locked exchange for a cell already taken.
-            if cell >= 0 and load_relaxed(hit_mask, cell) != 0 and exchange(hit_mask, cell, 0) != 0:
+            if (0 <= cell < n_cells and load_relaxed(hit_mask, cell) != 0
+                    and exchange(hit_mask, cell, 0) != 0):
                 _update(log_odds, cell, True, False, log_hit, log_miss, log_min, log_max)
