@@ -141,20 +141,20 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view):
     per_side = _coherent_plan(grid, origin, points.shape[0])
     view[:] = 1
     if per_side == 0:
-        _kernels.mark_scan(origin, points, max_range, args, free, hits, no_rows, no_rows,
-                           no_marks, 0)
+        _kernels.mark_scan(origin, points, max_range, args, free, hits, _kernels.WALK_ALL,
+                           no_rows, no_rows, no_rows, no_marks, 0)
         return 0, 0, 0
     n_bins = 6 * per_side * per_side
     bins = np.empty(points.shape[0], dtype=np.int64)
     coarse_bins = np.empty(points.shape[0], dtype=np.int64)
     coarse = max(per_side // SAMPLE_COARSENING, 1)
-    _kernels.bin_rays(origin, points, per_side, coarse, bins, coarse_bins)
-    samples, others = _kernels.split_samples(coarse_bins, 6 * coarse * coarse)
-    _kernels.mark_scan(origin, points, max_range, args, free, hits, samples, bins, no_marks, 0)
-    if others.shape[0] == 0:
-        return 0, 0, 0
+    first = np.empty(6 * coarse * coarse, dtype=np.int64)
+    _kernels.bin_rays(origin, points, per_side, coarse, bins, coarse_bins, first)
+    _kernels.mark_scan(origin, points, max_range, args, free, hits, _kernels.WALK_SAMPLES,
+                       coarse_bins, first, bins, no_marks, 0)
     rays = np.empty(4)
-    _kernels.ray_cone(coarse_bins[samples], coarse, rays)  # every ray's coarse bin holds a sample
+    # Every ray's coarse bin holds a sample: the cone of those bins holds every ray.
+    _kernels.ray_cone(first, points.shape[0], coarse, free.shape[0], rays)
     _kernels.columns_in_view(origin, args, rays, view)
     skip = min(grid.n_rho - 1, 63)  # the masks' 64 bits
     masks = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint64)
@@ -163,7 +163,8 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view):
     _kernels.mark_candidates(origin, args, masks, skip, per_side, rays, view,
                              np.empty((free.shape[0], n_bins), dtype=np.uint8), limit)
     started, ended, straight = _kernels.mark_scan(origin, points, max_range, args, free, hits,
-                                                  others, bins, limit, skip)
+                                                  _kernels.WALK_OTHERS, coarse_bins, first, bins,
+                                                  limit, skip)
     return int(started), int(ended), int(straight)
 
 

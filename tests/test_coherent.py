@@ -279,7 +279,7 @@ def test_a_cells_shadow_holds_every_direction_meeting_it(grid, sensor):
     for i, j, k in cells:
         points = _inside(rng, grid, i, j, k, 300)
         bins = np.empty(points.shape[0], dtype=np.int64)
-        kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins))
+        kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins), np.empty(6, np.int64))
         directions = points - origin
         directions /= np.linalg.norm(directions, axis=1)[:, None]
         axis = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
@@ -294,6 +294,39 @@ def test_a_cells_shadow_holds_every_direction_meeting_it(grid, sensor):
         assert (limit == 200).all() or tight[3] > 1.0
 
 
+def _bin_cone(bins, q, workers=None):
+    """``kernels.ray_cone`` of a list of cube-map bins (one worker per thread by default)."""
+    first = np.ones(6 * q * q, dtype=np.int64)  # 1 row, in none of the bins
+    first[bins] = 0  # but in these
+    cone = np.empty(4)
+    kernels.ray_cone(first, 1, q, workers or numba.get_num_threads(), cone)
+    return cone
+
+
+def test_each_coarse_bins_first_ray_is_its_sample_on_any_number_of_threads():
+    rng = np.random.default_rng(67)
+    origin = np.array([0.06, 0.08, 0.0])
+    points = _camera_scan(rng, origin, (1.0, 0.2, 0.4))
+    points[rng.random(points.shape[0]) < 0.03] = origin  # no rays: in no bin
+    for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+        numba.set_num_threads(threads)
+        try:
+            for q, coarse_q in ((306, 153), (8, 1)):
+                bins, coarse = (np.empty(points.shape[0], dtype=np.int64) for _ in range(2))
+                first = np.full(6 * coarse_q * coarse_q, -7, dtype=np.int64)
+                kernels.bin_rays(origin, points, q, coarse_q, bins, coarse, first)
+                want = np.full(first.shape[0], points.shape[0])
+                ray = np.flatnonzero(coarse >= 0)
+                np.minimum.at(want, coarse[ray], ray)
+                np.testing.assert_array_equal(first, want)
+                assert np.all((coarse == -1) == np.all(points == origin, axis=1))
+                sample = np.array([kernels.is_sample(coarse, first, r)
+                                   for r in range(points.shape[0])])
+                assert np.count_nonzero(sample) == np.count_nonzero(want < points.shape[0])
+        finally:
+            numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+
+
 def test_the_ray_cone_holds_every_ray():
     rng = np.random.default_rng(53)
     origin = np.array([0.06, 0.08, 0.0])
@@ -302,29 +335,28 @@ def test_the_ray_cone_holds_every_ray():
                               else (0.0, 1.0, 0.0))
         for q in (8, 101, 306):
             bins = np.empty(points.shape[0], dtype=np.int64)
-            kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins))
-            cone = np.empty(4)
-            kernels.ray_cone(np.unique(bins), q, cone)
+            kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins),
+                             np.empty(6, np.int64))
+            cone = _bin_cone(np.unique(bins), q)
             directions = points - origin
             directions /= np.linalg.norm(directions, axis=1)[:, None]
             assert np.arccos(np.clip(directions @ cone[:3], -1, 1)).max() <= cone[3]
 
 
 def test_the_ray_cone_is_the_same_on_any_number_of_threads():
-    # Its axis is a sum over the bins, taken in fixed blocks: more bins than
-    # one block, spread over every face, summed on 1 and 2 threads.
+    # Its axis is a sum over the bins, taken in fixed blocks: many blocks,
+    # spread over every face, summed on 1 and 2 threads by 1 to 7 workers.
     rng = np.random.default_rng(59)
     q = 64
-    bins = np.unique(rng.integers(0, 6 * q * q, 3 * kernels.CONE_SUM_BLOCK))
+    bins = np.unique(rng.integers(0, 6 * q * q, 30 * kernels.CONE_BLOCK))
     cones = []
     for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
-        with numba.parallel_chunksize(0):
-            numba.set_num_threads(threads)
-            cone = np.empty(4)
-            kernels.ray_cone(bins, q, cone)
-            cones.append(cone)
+        numba.set_num_threads(threads)
+        for workers in (1, 2, 7):
+            cones.append(_bin_cone(bins, q, workers))
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-    np.testing.assert_array_equal(cones[0], cones[1])
+    for cone in cones[1:]:
+        np.testing.assert_array_equal(cone, cones[0])
     centres = np.array([kernels._bin_corner(b, q, 0.5, 0.5) for b in bins[:50]])
     assert np.all(np.arccos(np.clip(centres @ cones[0][:3], -1, 1)) <= cones[0][3])
 
@@ -336,15 +368,12 @@ def test_a_ray_cone_wider_than_a_half_space_is_the_sphere(q):
     # for q = 3) would leave out a cap round its opposite, inside one bin and
     # clear of its corners: beyond a half-space the corners no longer bound
     # the bins. Every direction must be held (and never NaN).
-    cone = np.empty(4)
-    kernels.ray_cone(np.arange(6 * q * q), q, cone)
+    cone = _bin_cone(np.arange(6 * q * q), q)
     assert np.all(np.isfinite(cone)) and cone[3] >= np.pi
     # More than a half-space but not all round: one face's worth short.
-    kernels.ray_cone(np.arange(q * q, 6 * q * q), q, cone)
-    assert cone[3] >= np.pi
+    assert _bin_cone(np.arange(q * q, 6 * q * q), q)[3] >= np.pi
     # Within a half-space the cone stays tight.
-    kernels.ray_cone(np.arange(q * q), q, cone)
-    assert cone[3] < np.pi / 2
+    assert _bin_cone(np.arange(q * q), q)[3] < np.pi / 2
 
 
 @pytest.mark.parametrize("grid, sensor", [scan[:2] for scan in SCANS])

@@ -17,7 +17,11 @@ consistent accesses (LLVM ``seq_cst``), so that of two threads that each
 store one value and then load the other's, at least one sees the other's
 store.
 
-With ``NUMBA_DISABLE_JIT=1`` all six are plain Python.
+The coherent scan's samples, the first ray of each direction bin, are
+found by all threads at once with ``fetch_min`` (the lowest row wins,
+whichever thread gets there first).
+
+With ``NUMBA_DISABLE_JIT=1`` all seven are plain Python.
 """
 
 import numba
@@ -45,6 +49,12 @@ if numba.config.DISABLE_JIT:
         """Python stand-in: add ``value`` to ``array[index]``; return what it held."""
         old = array[index]
         array[index] = old + value
+        return old
+
+    def fetch_min(array, index, value):
+        """Python stand-in: lower ``array[index]`` to ``value`` if above; return what it held."""
+        old = array[index]
+        array[index] = min(old, value)
         return old
 
     store_ordered = store_relaxed
@@ -115,6 +125,14 @@ else:
         """Add ``value`` to ``array[index]`` atomically and return what it held
         (``lock xadd``; 1D integer array; no bounds check)."""
         return array.dtype(array, index, value), _read_modify_write("add", "seq_cst")
+
+    @intrinsic
+    def fetch_min(typingctx, array, index, value):
+        """Lower ``array[index]`` to ``value`` if above, atomically, unordered, and
+        return what it held (a signed ``atomicrmw min``: a locked compare-exchange
+        loop on x86, so worth a relaxed load first; 1D signed integer array; no
+        bounds check)."""
+        return array.dtype(array, index, value), _read_modify_write("min", "monotonic")
 
     @intrinsic
     def store_ordered(typingctx, array, index, value):

@@ -11,7 +11,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .atomic import exchange, load_relaxed, store_relaxed
+from .atomic import exchange, fetch_min, load_relaxed, store_relaxed
 from .exact import (
     PHI,
     THETA,
@@ -461,8 +461,15 @@ def _stays_in_column(x1, y1, z1, x2, y2, z2, dx, dy, dz, length, j, k, margin, g
         flat2 * sin_b - y2 * cos_b, away2 * sin_b - dy * cos_b, length, margin)
 
 
+# Which rays ``mark_scan`` walks: every one, the coherent scan's samples (the
+# first ray of each coarse bin), or the others.
+WALK_ALL = 0
+WALK_SAMPLES = 1
+WALK_OTHERS = 2
+
+
 @jit(parallel=True)
-def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, skip):
+def mark_scan(origin, points, max_range, grid, free, hits, walk, coarse, first, bins, limit, skip):
     """Walk the ray from ``origin`` to every point of a scan (see ``walk_ray``).
 
     ``max_range``: rays are cut there and end in no hit (``inf``: none).
@@ -470,7 +477,9 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
     has one row per worker, so no two threads write the same place (a
     worker per thread, each taking blocks of rays in turn: ``in_turn``);
     ``hits[row]`` gets ray ``row``'s hit cell (column-major index) or -1.
-    ``rows``: the rays to walk (empty: all). A ray may start on sphere
+    ``walk``: the rays to walk, ``WALK_ALL``, ``WALK_SAMPLES`` or
+    ``WALK_OTHERS`` (``coarse`` and ``first`` tell a sample: ``is_sample``),
+    each in row order. A ray may start on sphere
     ``limit`` of its direction bin (``bins``), ``skip`` at most (see
     ``_mark_off_centre``); with ``skip == 0`` every ray is walked whole.
 
@@ -483,7 +492,7 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
     Returns how many rays were let start beyond the gap's sphere, and how
     many of those ended below it and stayed in one column (not walked).
     """
-    n_rays = points.shape[0] if rows.shape[0] == 0 else rows.shape[0]
+    n_rays = points.shape[0]
     ox = origin[0]
     oy = origin[1]
     oz = origin[2]
@@ -508,8 +517,9 @@ def mark_scan(origin, points, max_range, grid, free, hits, rows, bins, limit, sk
         block = take(counter, n_blocks)
         while block >= 0:
             guesses[:] = 0
-            for n in range(block * step, min(n_rays, (block + 1) * step)):
-                row = n if rows.shape[0] == 0 else rows[n]
+            for row in range(block * step, min(n_rays, (block + 1) * step)):
+                if walk != WALK_ALL and is_sample(coarse, first, row) != (walk == WALK_SAMPLES):
+                    continue
                 dx, dy, dz, distance, is_hit, is_ray = sensor_ray(points, row, ox, oy, oz,
                                                                   max_range)
                 hits[row] = -1
@@ -596,16 +606,19 @@ def _bin_of(u, q):
 
 
 @jit(parallel=True)
-def bin_rays(origin, points, q, q_coarse, bins, coarse):
+def bin_rays(origin, points, q, q_coarse, bins, coarse, first):
     """Cube-map bin of each ray's direction from ``origin`` (``q`` x ``q`` per
     face, and ``q_coarse`` x ``q_coarse`` in ``coarse``); -1 for no ray (a
-    point at the sensor).
+    point at the sensor). ``first[b]``: the first row in coarse bin ``b`` (a
+    sample), or the number of rows where none is.
 
     The offset to the point is binned as it is: dividing by its length, as
     ``sensor_ray`` does, moves (u, v) by an ulp or so, well inside the 1e-12
     that every bound on a bin's contents is widened by.
     """
     n_rays = points.shape[0]
+    for b in prange(first.shape[0]):
+        first[b] = n_rays
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             x = points[row, 0] - origin[0]
@@ -618,13 +631,25 @@ def bin_rays(origin, points, q, q_coarse, bins, coarse):
                 face = _face_of(x, y, z)
                 _, u, v = _on_face(face, x, y, z)
                 bins[row] = (face * q + _bin_of(u, q)) * q + _bin_of(v, q)
-                coarse[row] = ((face * q_coarse + _bin_of(u, q_coarse)) * q_coarse
-                               + _bin_of(v, q_coarse))
+                b = (face * q_coarse + _bin_of(u, q_coarse)) * q_coarse + _bin_of(v, q_coarse)
+                coarse[row] = b
+                # Rows rise within a block: the locked minimum only for the
+                # first of a bin here, and only while no earlier row is in.
+                if load_relaxed(first, b) > row:
+                    fetch_min(first, b, row)
 
 
-# ``ray_cone`` sums the bins' centres in blocks of this many, then the blocks'
-# sums in order: the same sum, bit for bit, on any number of threads.
-CONE_SUM_BLOCK = 4096
+@jit(inline="always")
+def is_sample(coarse, first, row):
+    """Whether ``row`` is its coarse bin's sample, its first ray (``bin_rays``)."""
+    b = coarse[row]
+    return b >= 0 and first[b] == row
+
+
+# ``ray_cone`` takes the bins in blocks of this many, in turn; it sums their
+# centres block by block, then the blocks' sums in order: the same sum, bit
+# for bit, on any number of threads.
+CONE_BLOCK = 256
 
 
 @jit(inline="always")
@@ -649,28 +674,47 @@ def _bin_corner(b, q, du, dv):
 
 
 @jit(parallel=True)
-def ray_cone(bins, q, cone):
-    """A cone holding every direction of cube-map ``bins`` (``q`` x ``q`` per
-    face), into ``cone``: (axis x, y, z, half-angle).
+def ray_cone(first, n_rays, q, workers, cone):
+    """A cone holding every direction of the cube-map bins ``b`` with
+    ``first[b] < n_rays`` (``q`` x ``q`` per face; ``bin_rays``: the bins that
+    hold a ray), into ``cone``: (axis x, y, z, half-angle).
 
     The axis is the bins' centres' mean direction; the half-angle the largest
     angle from it to a bin's corner, plus 1e-9: a bin's directions form a
     convex cone, spanned by its corners, so a convex cone (one no wider than
     a half-space) that holds the corners holds the bin. A wider one is not
     convex, so then, and when the centres sum to zero, the half-angle is pi
-    (+ 1e-9): every direction. Both passes run on all threads; the sum goes
-    by fixed blocks (``CONE_SUM_BLOCK``), so the cone does not depend on the
+    (+ 1e-9): every direction.
+
+    Both passes run on ``workers`` threads, which take blocks of bins
+    (``CONE_BLOCK``) in turn: the bins with rays lie together, where the scan
+    looks. The sum goes block by block, so the cone does not depend on the
     thread count.
     """
-    n = bins.shape[0]
-    n_blocks = (n + CONE_SUM_BLOCK - 1) // CONE_SUM_BLOCK
-    sums = np.zeros((n_blocks, 3), dtype=np.float64)
-    for block in prange(n_blocks):
-        for row in range(block * CONE_SUM_BLOCK, min(n, (block + 1) * CONE_SUM_BLOCK)):
-            x, y, z = _bin_corner(bins[row], q, 0.5, 0.5)
-            sums[block, 0] += x
-            sums[block, 1] += y
-            sums[block, 2] += z
+    n = first.shape[0]
+    n_blocks = (n + CONE_BLOCK - 1) // CONE_BLOCK
+    sums = np.empty((n_blocks, 3), dtype=np.float64)
+    lows = np.empty(n_blocks, dtype=np.float64)
+    counter = np.zeros(1, dtype=np.int64)
+    for worker in prange(workers):
+        block = take(counter, n_blocks)
+        while block >= 0:
+            sx = 0.0
+            sy = 0.0
+            sz = 0.0
+            held = False
+            for b in range(block * CONE_BLOCK, min(n, (block + 1) * CONE_BLOCK)):
+                if first[b] < n_rays:
+                    x, y, z = _bin_corner(b, q, 0.5, 0.5)
+                    sx += x
+                    sy += y
+                    sz += z
+                    held = True
+            sums[block, 0] = sx  # once a block: neighbouring blocks share cache lines
+            sums[block, 1] = sy
+            sums[block, 2] = sz
+            lows[block] = 1.0 if held else 2.0  # 2: no bin here, the next pass skips it
+            block = take(counter, n_blocks)
     ax = 0.0
     ay = 0.0
     az = 0.0
@@ -679,7 +723,7 @@ def ray_cone(bins, q, cone):
         ay += sums[block, 1]
         az += sums[block, 2]
     norm = math.sqrt(ax * ax + ay * ay + az * az)
-    if not norm > 0.0:  # directions all round, in balance: no mean direction
+    if not norm > 0.0:  # directions all round, in balance (or none): no mean direction
         cone[0] = 1.0
         cone[1] = 0.0
         cone[2] = 0.0
@@ -688,40 +732,28 @@ def ray_cone(bins, q, cone):
     ax /= norm
     ay /= norm
     az /= norm
+    counter[0] = 0
+    for worker in prange(workers):
+        block = take(counter, n_blocks)
+        while block >= 0:
+            if lows[block] < 2.0:
+                low = 1.0
+                for b in range(block * CONE_BLOCK, min(n, (block + 1) * CONE_BLOCK)):
+                    if first[b] < n_rays:
+                        for corner in range(4):
+                            x, y, z = _bin_corner(b, q, corner % 2, corner // 2)
+                            low = min(low, x * ax + y * ay + z * az)
+                lows[block] = low
+            block = take(counter, n_blocks)
     lowest = 1.0  # min is exact in any order
-    for row in prange(n):
-        b = bins[row]
-        for corner in range(4):
-            x, y, z = _bin_corner(b, q, corner % 2, corner // 2)
-            lowest = min(lowest, x * ax + y * ay + z * az)
+    for block in range(n_blocks):
+        lowest = min(lowest, lows[block])
     cone[0] = ax
     cone[1] = ay
     cone[2] = az
     # Wider than a half-space, the cone is no longer convex: a bin could hold
     # directions outside it with every corner inside. It is then the sphere.
     cone[3] = math.acos(lowest) + 1e-9 if lowest >= 0.0 else math.pi + 1e-9
-
-
-@jit(runtime=True)
-def split_samples(coarse, n_coarse):
-    """The first ray of each coarse bin (the samples), and the other rows, in
-    order: a row with no ray (bin -1) among the others, whose walk gives it
-    no hit."""
-    taken = np.zeros(n_coarse, dtype=np.uint8)
-    samples = np.empty(coarse.shape[0], dtype=np.int64)
-    others = np.empty(coarse.shape[0], dtype=np.int64)
-    n_samples = 0
-    n_others = 0
-    for row in range(coarse.shape[0]):
-        b = coarse[row]
-        if b >= 0 and taken[b] == 0:
-            taken[b] = 1
-            samples[n_samples] = row
-            n_samples += 1
-        else:
-            others[n_others] = row
-            n_others += 1
-    return samples[:n_samples], others[:n_others]
 
 
 @jit(parallel=True)
