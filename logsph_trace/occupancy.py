@@ -139,8 +139,8 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view):
     no_rows = np.empty(0, dtype=np.int64)
     no_marks = np.empty(0, dtype=np.uint8)
     per_side = _coherent_plan(grid, origin, points.shape[0])
-    view[:] = 1
     if per_side == 0:
+        view[:] = 1
         _kernels.mark_scan(origin, points, max_range, args, free, hits, _kernels.WALK_ALL,
                            no_rows, no_rows, no_rows, no_marks, 0)
         return 0, 0, 0
