@@ -81,7 +81,8 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     ValueError
         Wrong shapes, NaN or infinite values, zero directions, unknown method
         or device, bad ``default_t``, ``max_iter`` or ``t_max``, ``out`` with
-        another method or with ``device="cuda"``, GPU arrays without
+        another method or with ``device="cuda"``, ``out`` whose arrays were
+        changed in place (their shape, dtype or flags), GPU arrays without
         ``device="cuda"``, or ``grid`` not a :class:`Grid` -- before any
         traversal runs.
     TypeError
@@ -102,8 +103,10 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     for name, value in (("t_max", t_max), ("out", out)):
         if value is not None and method != "exact":
             raise ValueError(f"{name} is supported by method='exact' only, got method={method!r}")
-    if out is not None and not isinstance(out, TraceBuffers):
-        raise TypeError(f"out must be a TraceBuffers, got {type(out).__name__}")
+    if out is not None:
+        if not isinstance(out, TraceBuffers):
+            raise TypeError(f"out must be a TraceBuffers, got {type(out).__name__}")
+        out.check()
     validate.host_only(device, origins=origins, directions=directions, t_max=t_max)
     if device == "cuda" and any(validate.on_gpu(v) for v in (origins, directions, t_max)):
         return cuda_backend().trace_gpu_inputs(grid, origins, directions, t_max)

@@ -116,6 +116,23 @@ class Traces:
         return f"Traces({len(self)} rays, {self.cells.shape[0]} segments)"
 
 
+def _check_writable(name, array, dtype, ndim):
+    """Raise ValueError unless ``array`` is a writeable, aligned, C-contiguous array.
+
+    Of ``dtype`` and ``ndim`` dimensions: what the kernels write into.
+    """
+    if not isinstance(array, np.ndarray):
+        raise ValueError(f"TraceBuffers.{name} must be a numpy array, got {type(array).__name__}")
+    flags = array.flags
+    if not (array.dtype == dtype and array.ndim == ndim and flags.c_contiguous
+            and flags.aligned and flags.writeable):
+        raise ValueError(
+            f"TraceBuffers.{name} was changed in place: it must stay a writeable, aligned, "
+            f"C-contiguous {ndim}-d {np.dtype(dtype)} array, got {array.ndim}-d {array.dtype}, "
+            f"writeable={flags.writeable}, C-contiguous={flags.c_contiguous}; "
+            "use a new TraceBuffers()")
+
+
 def _host(array):
     """``array`` as numpy: device arrays are copied back, numpy arrays pass through."""
     return array if isinstance(array, np.ndarray) else array.copy_to_host()
@@ -144,36 +161,77 @@ class TraceBuffers:
     """
 
     def __init__(self):
-        self.offsets = np.empty(0, dtype=np.int64)
-        self.cells = np.empty((0, 3), dtype=np.int32)
-        self.t_enter = np.empty(0, dtype=np.float64)
-        self.t_exit = np.empty(0, dtype=np.float64)
+        self._offsets = np.empty(0, dtype=np.int64)
+        self._cells = np.empty((0, 3), dtype=np.int32)
+        self._t_enter = np.empty(0, dtype=np.float64)
+        self._t_exit = np.empty(0, dtype=np.float64)
+
+    # The arrays are read-only attributes: the kernels write into them up to
+    # the capacity they report, so an array swapped in from outside could be
+    # written out of bounds. Their contents are the caller's to read.
+    @property
+    def offsets(self):
+        """Ray offsets, int64; the last call's are the first ``rays + 1``."""
+        return self._offsets
+
+    @property
+    def cells(self):
+        """Cells, int32, shape (capacity, 3)."""
+        return self._cells
+
+    @property
+    def t_enter(self):
+        """Entry distances, float64, shape (capacity,)."""
+        return self._t_enter
+
+    @property
+    def t_exit(self):
+        """Exit distances, float64, shape (capacity,)."""
+        return self._t_exit
 
     @property
     def capacity(self):
         """Segments the buffers hold room for now."""
-        return self.t_enter.shape[0]
+        return self._t_enter.shape[0]
 
     @property
     def nbytes(self):
         """Memory the buffers hold, in bytes."""
-        return sum(a.nbytes for a in (self.offsets, self.cells, self.t_enter, self.t_exit))
+        return sum(a.nbytes for a in (self._offsets, self._cells, self._t_enter, self._t_exit))
 
     def ray_offsets(self, n_rays):
         """Return the offsets array for ``n_rays`` rays (a view; grown when too short)."""
-        if self.offsets.shape[0] < n_rays + 1:
-            self.offsets = np.empty(n_rays + 1 + n_rays // 4, dtype=np.int64)
-        return self.offsets[:n_rays + 1]
+        if self._offsets.shape[0] < n_rays + 1:
+            self._offsets = np.empty(n_rays + 1 + n_rays // 4, dtype=np.int64)
+        return self._offsets[:n_rays + 1]
 
     def segments(self):
         """(cells, t_enter, t_exit), or None while they hold no room."""
         if self.capacity == 0:
             return None
-        return self.cells, self.t_enter, self.t_exit
+        return self._cells, self._t_enter, self._t_exit
 
     def keep(self, segments):
         """Hold ``segments`` (cells, t_enter, t_exit) from now on."""
-        self.cells, self.t_enter, self.t_exit = segments
+        self._cells, self._t_enter, self._t_exit = segments
+
+    def check(self):
+        """Raise ValueError unless the kernels may write the capacity's rows of every array.
+
+        ``trace_many`` calls it before any kernel runs. O(1): numpy lets an
+        array's shape, dtype and flags be changed in place, so this reads
+        them again on every call.
+        """
+        cells, t_enter, t_exit = self._cells, self._t_enter, self._t_exit
+        _check_writable("offsets", self._offsets, np.int64, 1)
+        _check_writable("cells", cells, np.int32, 2)
+        _check_writable("t_enter", t_enter, np.float64, 1)
+        _check_writable("t_exit", t_exit, np.float64, 1)
+        if cells.shape[1] != 3 or not cells.shape[0] == t_enter.shape[0] == t_exit.shape[0]:
+            raise ValueError(
+                "TraceBuffers' arrays were changed in place: cells must stay (n, 3) and "
+                f"t_enter and t_exit (n,), got {cells.shape}, {t_enter.shape} and "
+                f"{t_exit.shape}; use a new TraceBuffers()")
 
     def __repr__(self):
         return f"TraceBuffers({self.capacity:,} segments, {self.nbytes / 2**20:.1f} MiB)"

@@ -122,3 +122,55 @@ def test_buffers_with_threads_set_to_one():
     finally:
         numba.set_num_threads(before)
     assert_same(got, lt.trace_many(grid, origins, directions, parallel=False))
+
+
+def test_buffers_arrays_cannot_be_replaced():
+    # The kernels write up to the capacity the buffers report: a shorter
+    # array swapped in for one of them was written out of bounds (heap
+    # corruption) before these became read-only attributes.
+    buffers = lt.TraceBuffers()
+    for name in FIELDS:
+        with pytest.raises(AttributeError):
+            setattr(buffers, name, np.empty(5))
+
+
+def _reshape(array):
+    array.shape = (1, array.size)
+
+
+def _retype(array):
+    array.dtype = np.float32 if array.dtype == np.float64 else np.int16
+
+
+def _shrink(array):
+    array.resize(5, refcheck=False)
+
+
+@pytest.mark.parametrize("name", FIELDS)
+@pytest.mark.parametrize("change, match", [
+    (lambda a: a.setflags(write=False), "writeable=False"),
+    (_reshape, "changed in place"),
+    (_retype, "changed in place"),
+    (_shrink, "changed in place"),
+])
+def test_buffers_changed_in_place_are_refused_before_tracing(name, change, match):
+    # numpy lets an array's shape, dtype and flags change in place, so each
+    # call reads them again (in O(1)) and refuses what the kernels cannot
+    # write into, instead of writing past an array's end or failing in Numba.
+    grid = GRIDS["log_full"]()
+    origins, directions = random_rays(np.random.default_rng(10), grid, 500)
+    buffers = lt.TraceBuffers()
+    lt.trace_many(grid, origins, directions, out=buffers)
+    array = getattr(buffers, name)
+    if change is _shrink and name == "cells":
+        array.resize((5, 3), refcheck=False)
+    else:
+        change(array)
+    want = lt.trace_many(grid, origins, directions, parallel=False)
+    if change is _shrink and name == "offsets":  # too short: replaced, as when it was empty
+        assert_same(lt.trace_many(grid, origins, directions, out=buffers), want)
+        return
+    for parallel in (False, True):
+        with pytest.raises(ValueError, match=match):
+            lt.trace_many(grid, origins, directions, parallel=parallel, out=buffers)
+    assert_same(lt.trace_many(grid, origins, directions, out=lt.TraceBuffers()), want)
