@@ -168,6 +168,26 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view):
     return int(started), int(ended), int(straight)
 
 
+class _Probability:
+    """An attribute that holds a probability in (low, high), checked on every assignment.
+
+    The kernels take its logit: a value outside the range would turn the
+    whole map into NaN without an error.
+    """
+
+    def __init__(self, low, high):
+        self.low, self.high = low, high
+
+    def __set_name__(self, owner, name):
+        self.name = name
+
+    def __get__(self, obj, owner=None):
+        return self if obj is None else obj.__dict__[self.name]
+
+    def __set__(self, obj, value):
+        obj.__dict__[self.name] = validate.probability(self.name, value, self.low, self.high)
+
+
 class OccupancyGrid:
     """Log-odds occupancy over a grid, updated OctoMap-style.
 
@@ -194,19 +214,28 @@ class OccupancyGrid:
     grid : Grid
         Read-only: a map's cells are fixed when it is made.
     log_odds : numpy.ndarray, float32, C-contiguous, shape ``grid.shape``
-        0 is unknown (p = 0.5). Its values may be changed in place. Assigning
-        an array checks its shape and values and stores a C-contiguous float32
-        copy (an assigned array that is already one is used as it is). On a
-        GPU map, a numba-cuda device array (CUDA Array Interface); assigning
-        a host array copies it to the device.
+        0 is unknown (p = 0.5). Its values may be changed in place, its
+        shape, dtype and flags may not (the next use raises ValueError).
+        Assigning an array checks its shape and values and stores a
+        C-contiguous float32 copy (an assigned array that is already one is
+        used as it is). On a GPU map, a numba-cuda device array (CUDA Array
+        Interface); assigning a host array copies it to the device.
     device : str
         ``"cpu"`` or ``"cuda"``.
+    p_hit, p_miss, p_min, p_max : float
+        As the parameters; assigning one checks its range, and the next
+        scan uses it.
 
     Raises
     ------
     RuntimeError
         ``device="cuda"`` without a usable GPU or numba-cuda.
     """
+
+    p_hit = _Probability(0.5, 1.0)
+    p_miss = _Probability(0.0, 0.5)
+    p_min = _Probability(0.0, 0.5)
+    p_max = _Probability(0.5, 1.0)
 
     def __init__(self, grid, p_hit=0.7, p_miss=0.4, p_min=0.1192, p_max=0.971, log_odds=None,
                  device="cpu"):
@@ -219,10 +248,7 @@ class OccupancyGrid:
         self._grid = grid
         self._last_scan = None
         self._labels = np.zeros(grid.shape, dtype=np.int32)
-        self.p_hit = validate.probability("p_hit", p_hit, 0.5, 1.0)
-        self.p_miss = validate.probability("p_miss", p_miss, 0.0, 0.5)
-        self.p_min = validate.probability("p_min", p_min, 0.0, 0.5)
-        self.p_max = validate.probability("p_max", p_max, 0.5, 1.0)
+        self.p_hit, self.p_miss, self.p_min, self.p_max = p_hit, p_miss, p_min, p_max
         if log_odds is None:
             log_odds = np.zeros(grid.shape, dtype=np.float32)
         self.log_odds = log_odds
@@ -252,11 +278,30 @@ class OccupancyGrid:
 
     def _host_log_odds(self):
         """Return the log-odds as a numpy array (a copy from a GPU map)."""
-        return self._log_odds if self._cuda is None else self._log_odds.copy_to_host()
+        return self._checked() if self._cuda is None else self._log_odds.copy_to_host()
 
     def _flat(self):
         """Return the log-odds as a flat array of ``grid.size`` cells, where they live."""
-        return self._log_odds.reshape(self._log_odds.size)
+        log_odds = self._log_odds if self._cuda is not None else self._checked()
+        return log_odds.reshape(log_odds.size)
+
+    def _checked(self):
+        """Return the host map, after checking it is still what the kernels may write.
+
+        O(1). numpy lets an array's shape, dtype and flags change in place
+        (``log_odds.dtype = np.float64`` halves its length), and the kernels
+        index the map as ``grid.size`` float32 cells.
+        """
+        log_odds = self._log_odds
+        flags = log_odds.flags
+        if not (log_odds.dtype == np.float32 and log_odds.shape == self._grid.shape
+                and flags.c_contiguous and flags.aligned and flags.writeable):
+            raise ValueError(
+                f"log_odds was changed in place: it must stay a writeable, C-contiguous "
+                f"float32 array of shape {self._grid.shape}, got {log_odds.dtype} "
+                f"{log_odds.shape}, writeable={flags.writeable}; assign a new array to "
+                "log_odds instead")
+        return log_odds
 
     def to_host(self):
         """Return the map on the CPU: ``self`` for a CPU map, else a copy."""
@@ -337,13 +382,14 @@ class OccupancyGrid:
             max_range = validate.finite("max_range", max_range)
             if not max_range > 0:
                 raise ValueError(f"max_range must be a positive number, got {max_range!r}")
+        log_odds = self._flat()
         self._last_scan = ScanStats(points.shape[0], skipped)
         grid = self.grid
         n_cells = int(np.prod(grid.shape))
         threads = numba.get_num_threads()
         update = (_logit(self.p_hit), _logit(self.p_miss), _logit(self.p_min), _logit(self.p_max))
         if self._cuda is not None:
-            hits = self._cuda.integrate(grid, self._flat(), points, origin, max_range, update,
+            hits = self._cuda.integrate(grid, log_odds, points, origin, max_range, update,
                                         labels is not None)
         elif not np.any(origin):
             # The egocentric case: every ray is radial. Hits are map indices.
@@ -354,7 +400,7 @@ class OccupancyGrid:
                 start = lap("prepare", start)
                 _kernels.mark_radial(points, max_range, grid.kernel_args(), free_extent, hits)
                 start = lap("mark", start)
-                _kernels.apply_radial(self.log_odds.reshape(-1), free_extent, hits, hit_mask,
+                _kernels.apply_radial(log_odds, free_extent, hits, hit_mask,
                                       grid.n_theta, grid.n_phi, *update)
                 lap("apply", start)
         else:
@@ -367,7 +413,7 @@ class OccupancyGrid:
                 start = lap("prepare", start)
                 _mark_off_centre(grid, origin, points, max_range, free, hits, words, view)
                 start = lap("mark", start)
-                _kernels.apply_scan(self.log_odds.reshape(-1), free, words, hits, grid.n_rho,
+                _kernels.apply_scan(log_odds, free, words, hits, grid.n_rho,
                                     view, *update)
                 lap("apply", start)
         if labels is not None:
@@ -417,7 +463,7 @@ class OccupancyGrid:
         From a GPU map only these cells are copied.
         """
         if self._cuda is None:
-            return self._log_odds[tuple(np.asarray(cells).T)]
+            return self._checked()[tuple(np.asarray(cells).T)]
         flat = np.ravel_multi_index(tuple(np.asarray(cells).T), self.grid.shape)
         return self._cuda.values_at(self._flat(), flat.astype(np.int64))
 
@@ -484,7 +530,8 @@ class OccupancyGrid:
         if not 0.0 <= factor <= 1.0:
             raise ValueError(f"factor must be in [0, 1], got {factor!r}")
         if self._cuda is None:
-            np.multiply(self._log_odds, np.float32(factor), out=self._log_odds)
+            log_odds = self._checked()
+            np.multiply(log_odds, np.float32(factor), out=log_odds)
         else:
             self._cuda.decay(self._flat(), np.float32(factor))
         return self

@@ -74,6 +74,56 @@ def test_bad_log_odds_values_name_the_argument(bad, match):
         OccupancyGrid(SMALL, log_odds=bad)
 
 
+def _widen(array):
+    array.dtype = np.float64  # in place: half as many cells, each 8 bytes
+
+
+def _flatten(array):
+    array.shape = (array.size,)
+
+
+@pytest.mark.parametrize("change", [_widen, _flatten, lambda a: a.setflags(write=False)])
+@pytest.mark.parametrize("use", [
+    lambda bvm: bvm.integrate(_points(), [0, 0, 0]),
+    lambda bvm: bvm.integrate(_points(20_000), [0.05, -0.02, 0.01]),
+    lambda bvm: bvm.decay(0.5),
+    lambda bvm: lt.fixation_probability(bvm, [0.1, 0, 0], [1.0, 0.2, 0.1], 0.05),
+    lambda bvm: bvm.probability,
+], ids=["integrate_centre", "integrate_off_centre", "decay", "fixation", "probability"])
+def test_log_odds_changed_in_place_is_refused_before_any_kernel(change, use):
+    # numpy lets an array's dtype, shape and flags change in place. Widening
+    # the dtype to float64 halved the map, and integrating then wrote past
+    # its end (glibc aborted: "free(): invalid size"); a read-only map was a
+    # Numba TypingError. Each use checks the map again, in O(1).
+    bvm = OccupancyGrid(SMALL)
+    change(bvm.log_odds)
+    with pytest.raises(ValueError, match="log_odds was changed in place"):
+        use(bvm)
+    bvm.log_odds = np.zeros(SMALL.shape, dtype=np.float32)  # assigning is the way
+    use(bvm)
+
+
+@pytest.mark.parametrize("name, bad", [("p_hit", 2.0), ("p_hit", 0.3), ("p_miss", 0.6),
+                                       ("p_min", 0.9), ("p_max", "high"), ("p_max", np.nan)])
+def test_update_probabilities_are_checked_when_assigned(name, bad):
+    # They were plain attributes: p_hit = 2.0 made every updated cell NaN
+    # without an error.
+    bvm = OccupancyGrid(SMALL)
+    with pytest.raises(ValueError, match=name):
+        setattr(bvm, name, bad)
+    bvm.integrate(_points(), [0, 0, 0])
+    assert np.all(np.isfinite(bvm.log_odds))
+
+
+def test_update_probabilities_assigned_later_are_used():
+    fresh, changed = OccupancyGrid(SMALL, p_hit=0.9), OccupancyGrid(SMALL)
+    changed.p_hit = 0.9
+    assert changed.p_hit == 0.9
+    for bvm in (fresh, changed):
+        bvm.integrate(_points(), [0, 0, 0])
+    np.testing.assert_array_equal(changed.log_odds, fresh.log_odds)
+
+
 # ---- files ----------------------------------------------------------------
 
 def test_a_failed_save_keeps_the_old_map_and_leaves_no_partial_file(tmp_path, monkeypatch):
