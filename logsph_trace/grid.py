@@ -276,6 +276,8 @@ class Grid:
 
         The cone arrays (``phi_tan2``, ``phi_nappe``) end in
         ``CONE_BLOCK - 1`` zeros, for the exact kernel's blocks of cones.
+        Every array is read-only, like the edges: the bundle is shared by
+        every later call on this grid.
         """
         cached = getattr(self, "_kernel_args", None)
         if cached is None:
@@ -290,6 +292,9 @@ class Grid:
                 np.concatenate([np.sign(phi), pad]), self.phi_kind,
                 _each(math.sin, phi), _each(math.cos, phi),
             )
+            for array in cached:
+                if isinstance(array, np.ndarray):
+                    array.setflags(write=False)
             object.__setattr__(self, "_kernel_args", cached)
         return cached
 

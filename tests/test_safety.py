@@ -34,6 +34,12 @@ def test_a_grid_cannot_be_changed_in_place():
         grid.rho_edges = np.linspace(0.3, 10, 100)
     with pytest.raises(ValueError):
         grid.theta_edges[0] = 1.0  # read-only array
+    # The kernels' bundle too: it is cached and shared by every later call,
+    # so a sine overwritten there silently changed every later trace.
+    for array in grid.kernel_args():
+        if isinstance(array, np.ndarray):
+            with pytest.raises(ValueError, match="read-only"):
+                array[0] = 1.0
 
 
 @pytest.mark.parametrize("bad", [np.zeros((16, 36)), np.zeros((64, 360, 180)),
