@@ -23,6 +23,7 @@ import numpy as np
 
 import logsph_trace as lt
 from bench.workload import best_time, make_grid, make_rays
+from logsph_trace._files import write_text
 
 RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_TS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 1.5531, 2.0, 5.0)
@@ -131,12 +132,12 @@ def main(argv=None):
     print(text)
     command = "python -m bench.accuracy " + " ".join(argv if argv is not None else sys.argv[1:])
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({
+    write_text(args.out, json.dumps({
         "command": command.strip(), "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
         "rays": args.rays, "cells_per_axis": args.cells, "voxels_crossed": int(crossed),
         "exact_ns_per_voxel": exact_ns, "bisect": rows,
     }, indent=2) + "\n")
-    args.out.with_suffix(".md").write_text(f"`{command.strip()}`\n\n{text}\n")
+    write_text(args.out.with_suffix(".md"), f"`{command.strip()}`\n\n{text}\n")
 
 
 if __name__ == "__main__":

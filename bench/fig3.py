@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 import logsph_trace as lt
+from logsph_trace._files import save_figure, write_text
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ORIGIN = (0.0, 20.0, 20.0)
@@ -55,10 +56,10 @@ def main(argv=None):
     text = "\n".join(lines)
     print(text)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "fig3.md").write_text(text + "\n")
+    write_text(RESULTS / "fig3.md", text + "\n")
     fig = trace_figure(grid, ORIGIN, DIRECTION, exact,
                        title="Gaze tracing example (paper Fig. 3), exact method, decimetres")
-    fig.savefig(RESULTS / "fig3.png", dpi=110)
+    save_figure(fig, RESULTS / "fig3.png", dpi=110)
     print(f"wrote {RESULTS / 'fig3.png'}")
     return 0
 

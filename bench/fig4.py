@@ -25,6 +25,7 @@ import numpy as np
 
 import logsph_trace as lt
 from bench.workload import make_box, make_grid, make_rays
+from logsph_trace._files import save_figure, write_text
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHODS = ("exact", "bisect", "thibaudeau", "amanatides_woo")
@@ -95,7 +96,7 @@ def plot(points, path):
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 
@@ -133,11 +134,11 @@ def main(argv=None):
     arguments = argv if argv is not None else sys.argv[1:]
     command = ("python -m bench.fig4 " + " ".join(arguments)).strip()
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({
+    write_text(args.out, json.dumps({
         "command": command, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
         "rays": args.rays, "repetitions": args.repetitions, "points": points,
     }, indent=2) + "\n")
-    args.out.with_suffix(".md").write_text(f"`{command}`\n\n{text}\n")
+    write_text(args.out.with_suffix(".md"), f"`{command}`\n\n{text}\n")
     plot(points, args.out.with_suffix(".png"))
     print(f"wrote {args.out}, {args.out.with_suffix('.png')}")
 

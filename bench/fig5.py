@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 import logsph_trace as lt
+from logsph_trace._files import save_figure, write_text
 from logsph_trace.scene import table_scene
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -91,7 +92,7 @@ def figure(grid, result, path):
         ax.set_title(title)
     fig.suptitle("Gaze tracing with the occupancy map (cf. paper Fig. 5)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
 
 
@@ -126,7 +127,7 @@ def main(argv=None):
     text = "\n".join(lines)
     print(text)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "fig5.md").write_text(text + "\n")
+    write_text(RESULTS / "fig5.md", text + "\n")
     figure(grid, result, RESULTS / "fig5.png")
     print(f"wrote {RESULTS / 'fig5.png'}")
     return 0 if result["top_is_object"] and result["fixation_top_is_object"] else 1

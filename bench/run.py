@@ -27,6 +27,7 @@ import numpy as np
 import logsph_trace as lt
 from bench.workload import fresh_processes, make_box, make_grid, make_rays, thread_counts, timed
 from logsph_trace import _batching, _validate
+from logsph_trace._files import write_text
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -207,8 +208,8 @@ def main(argv=None):
         "first_call": first_call,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(record, indent=2) + "\n")
-    args.out.with_suffix(".md").write_text(f"`{record['command'].strip()}`\n\n{text}\n")
+    write_text(args.out, json.dumps(record, indent=2) + "\n")
+    write_text(args.out.with_suffix(".md"), f"`{record['command'].strip()}`\n\n{text}\n")
 
 
 if __name__ == "__main__":

@@ -113,10 +113,12 @@ def fresh_processes(code):
 
 def write_results(name, argv, text, record):
     """Print ``text`` and write bench/results/<name>.json (``record`` plus the
-    command and date) and <name>.md (the command, then ``text``)."""
+    command and date) and <name>.md (the command, then ``text``), each atomically."""
     import json
     import sys
     from pathlib import Path
+
+    from logsph_trace._files import write_text
 
     results = Path(__file__).resolve().parent / "results"
     arguments = argv if argv is not None else sys.argv[1:]
@@ -124,5 +126,5 @@ def write_results(name, argv, text, record):
     print(text)
     results.mkdir(parents=True, exist_ok=True)
     stamped = {"command": command, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), **record}
-    (results / f"{name}.json").write_text(json.dumps(stamped, indent=2) + "\n")
-    (results / f"{name}.md").write_text(f"`{command}`\n\n{text}\n")
+    write_text(results / f"{name}.json", json.dumps(stamped, indent=2) + "\n")
+    write_text(results / f"{name}.md", f"`{command}`\n\n{text}\n")

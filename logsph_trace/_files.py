@@ -50,3 +50,16 @@ def npz_path(path):
     """Return the name ``numpy.savez`` would write: ``path`` with ``.npz`` added if missing."""
     path = Path(path)
     return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+
+
+def write_text(path, text):
+    """Write ``text`` (UTF-8) to ``path`` all or nothing."""
+    with atomic_write(path) as stream:
+        stream.write(text.encode("utf-8"))
+
+
+def save_figure(figure, path, **options):
+    """``figure.savefig(path, **options)``, all or nothing; the format is the suffix's."""
+    path = Path(path)
+    with atomic_write(path) as stream:
+        figure.savefig(stream, format=path.suffix.lstrip(".") or None, **options)

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._files import save_figure
+
 OUT_DIR = Path("logsph-trace-out")
 CHUNK_RAYS = 65_536  # rays per batch chunk: bounds the memory of a large batch
 
@@ -304,7 +306,7 @@ def cmd_demo(args):
           f"Algorithm 1 with the paper's default_t reports {len(bisect)}")
     _print_trace(exact, "table", sys.stdout)
     figure = trace_figure(grid, origin, direction, exact, title="The paper's Fig. 3 example")
-    figure.savefig(out / "fig3_worked_example.png", dpi=90)
+    save_figure(figure, out / "fig3_worked_example.png", dpi=90)
 
     scene, eyes, target = table_scene()
     room = Grid(0.3, 5.0, 32, 120, 60)
@@ -354,7 +356,7 @@ def _scene_figure(grid, bvm, eyes, target, targets, points, path):
     ax.set_zlabel("y (up)")
     ax.set_title("occupied cells nearer than 3 m (red; the wall is left out),\n"
                  "the gaze (yellow) and what it lands on (green)")
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)
 
 
@@ -454,7 +456,7 @@ def _real_figure(frame, labels, parts, grid, bvm, scan, eyes, gazes, path):
                   "it names", fontsize=9)
     side.set_title("the same from the side; the star is the person's eyes", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
+    save_figure(fig, path, dpi=80)
     plt.close(fig)
 
 

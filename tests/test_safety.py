@@ -150,6 +150,36 @@ def test_a_failed_save_keeps_the_old_map_and_leaves_no_partial_file(tmp_path, mo
     assert os.listdir(tmp_path) == ["map.npz"]
 
 
+def test_a_failed_figure_keeps_the_old_file_and_leaves_no_partial_file(tmp_path):
+    # The demo's figures (and the benchmarks' records) go through the same
+    # temporary file as a map: a figure that fails half-written leaves the
+    # old one as it was.
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from logsph_trace._files import save_figure, write_text
+
+    path = tmp_path / "figure.png"
+    figure = plt.figure()
+    save_figure(figure, path, dpi=20)
+    before = path.read_bytes()
+    assert before.startswith(b"\x89PNG")
+
+    def broken(stream, **options):
+        stream.write(b"x" * 1000)
+        raise OSError(28, "No space left on device")
+
+    figure.savefig = broken
+    with pytest.raises(OSError, match="No space"):
+        save_figure(figure, path)
+    plt.close(figure)
+    assert path.read_bytes() == before
+    write_text(tmp_path / "record.md", "ok\n")
+    assert (tmp_path / "record.md").read_text() == "ok\n"
+    assert sorted(os.listdir(tmp_path)) == ["figure.png", "record.md"]
+
+
 def test_an_interrupted_save_keeps_the_old_map(tmp_path, monkeypatch):
     path = tmp_path / "map.npz"
     OccupancyGrid(SMALL).save(path)
