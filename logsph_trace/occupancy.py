@@ -215,7 +215,8 @@ class OccupancyGrid:
         Read-only: a map's cells are fixed when it is made.
     log_odds : numpy.ndarray, float32, C-contiguous, shape ``grid.shape``
         0 is unknown (p = 0.5). Its values may be changed in place, its
-        shape, dtype and flags may not (the next use raises ValueError).
+        shape and dtype may not (the next use raises ValueError), and it must
+        stay writeable for the calls that use it in a kernel.
         Assigning an array checks its shape and values and stores a
         C-contiguous float32 copy (an assigned array that is already one is
         used as it is). On a GPU map, a numba-cuda device array (CUDA Array
@@ -278,24 +279,25 @@ class OccupancyGrid:
 
     def _host_log_odds(self):
         """Return the log-odds as a numpy array (a copy from a GPU map)."""
-        return self._checked() if self._cuda is None else self._log_odds.copy_to_host()
+        return self._checked(write=False) if self._cuda is None else self._log_odds.copy_to_host()
 
     def _flat(self):
         """Return the log-odds as a flat array of ``grid.size`` cells, where they live."""
         log_odds = self._log_odds if self._cuda is not None else self._checked()
         return log_odds.reshape(log_odds.size)
 
-    def _checked(self):
+    def _checked(self, write=True):
         """Return the host map, after checking it is still what the kernels may write.
 
         O(1). numpy lets an array's shape, dtype and flags change in place
         (``log_odds.dtype = np.float64`` halves its length), and the kernels
-        index the map as ``grid.size`` float32 cells.
+        index the map as ``grid.size`` float32 cells. ``write=False``: for
+        numpy reads, which need not write.
         """
         log_odds = self._log_odds
         flags = log_odds.flags
         if not (log_odds.dtype == np.float32 and log_odds.shape == self._grid.shape
-                and flags.c_contiguous and flags.aligned and flags.writeable):
+                and flags.c_contiguous and flags.aligned and (flags.writeable or not write)):
             raise ValueError(
                 f"log_odds was changed in place: it must stay a writeable, C-contiguous "
                 f"float32 array of shape {self._grid.shape}, got {log_odds.dtype} "
@@ -463,7 +465,7 @@ class OccupancyGrid:
         From a GPU map only these cells are copied.
         """
         if self._cuda is None:
-            return self._checked()[tuple(np.asarray(cells).T)]
+            return self._checked(write=False)[tuple(np.asarray(cells).T)]
         flat = np.ravel_multi_index(tuple(np.asarray(cells).T), self.grid.shape)
         return self._cuda.values_at(self._flat(), flat.astype(np.int64))
 
