@@ -322,15 +322,25 @@ def half_angle(half_angle, name="half_angle"):
 
 def vector(name, value):
     """One 3-vector: shape (3,) (or (1, 3)), finite, returned as (3,) float64."""
-    array = vectors(name, value)
-    if array.shape[0] != 1:
-        raise ValueError(f"{name} must be one vector of shape (3,), got shape {np.shape(value)}")
-    return array[0]
+    array = np.ascontiguousarray(_rows_of_three(name, value))
+    if array.shape[0] == 1:
+        # Checked as Python floats: a numpy reduction costs microseconds, and
+        # ten times that with the caches cold after a scan's kernels.
+        row = array[0].tolist()
+        if not all(map(math.isfinite, row)):
+            raise ValueError(NOT_FINITE.format(name=name, row=0, value=row))
+        return array[0]
+    vectors(name, array)  # names a row that is not finite first, as for many vectors
+    raise ValueError(f"{name} must be one vector of shape (3,), got shape {np.shape(value)}")
 
 
 def point(name, value):
-    """One position: :func:`vector` whose squared length is finite."""
-    return origin_size(name, vector(name, value)[None, :])[0]
+    """One position: :func:`vector` whose squared length is finite (see :func:`origin_size`)."""
+    array = vector(name, value)
+    x, y, z = array.tolist()
+    if not math.isfinite(x * x + y * y + z * z):
+        raise ValueError(TOO_LONG.format(name=name, row=0, value=[x, y, z]))
+    return array
 
 
 def unit(name, value):

@@ -11,6 +11,7 @@ looked at.
 """
 
 import contextlib
+import math
 import threading
 import time
 import zipfile
@@ -67,16 +68,18 @@ def _coherent_plan(grid, origin, n_rays):
     full theta and phi ranges (a walk then never leaves the region) and
     enough rays.
     """
-    distance = float(np.sqrt(np.sum(origin**2)))
-    phi = grid.phi_edges
-    if (n_rays < COHERENT_MIN_RAYS or not 0.0 < distance < grid.rho_edges[0]
-            or not grid.theta_full or phi[0] > -np.pi / 2 or phi[-1] < np.pi / 2):
+    # In Python floats: numpy's per-call cost is paid on one thread, before
+    # the scan's parallel work (the same values: np.sum adds three in order).
+    x, y, z = origin.tolist()
+    distance = math.sqrt(x * x + y * y + z * z)
+    rho_min, phi_range = grid.rho_min, grid.phi_range
+    if (n_rays < COHERENT_MIN_RAYS or not 0.0 < distance < rho_min
+            or not grid.theta_full or phi_range[0] > -np.pi / 2 or phi_range[1] < np.pi / 2):
         return 0
     # Bins half the narrowest cell as seen from the sensor, so the samples
     # cross most cells near it.
-    narrowest = min(np.min(np.diff(grid.theta_edges)), np.min(np.diff(phi)))
-    step = 0.5 * narrowest * grid.rho_edges[0] / (grid.rho_edges[0] + distance)
-    return int(np.clip(np.ceil(2.0 / step), 8, COHERENT_MAX_BINS))
+    step = 0.5 * grid._narrowest_angle * rho_min / (rho_min + distance)
+    return min(max(math.ceil(2.0 / step), 8), COHERENT_MAX_BINS)
 
 
 # A scan's flags (one row per thread) are kept zero for this Python thread's
