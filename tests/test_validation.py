@@ -136,4 +136,26 @@ def test_a_large_batch_is_checked_for_finite_values_on_all_threads(bad):
     assert mask is None and kept.shape == points.shape
 
 
+@pytest.mark.parametrize("length", [1, 7, 8, 9, 4095, 4096, 4097, 3 * 4096 + 13])
+def test_the_finite_check_finds_one_bad_value_at_any_place(length):
+    # all_finite sums x * 0.0 in eight lanes per block of 4096, then a tail:
+    # a bad value is found in every lane, every block and the tail, and the
+    # largest, smallest and signed-zero finite values pass.
+    from logsph_trace.kernels import locate
+
+    values = np.random.default_rng(length).normal(size=length)
+    values[::5] = 1.7976931348623157e308
+    values[1::7] = -5e-324
+    values[2::11] = -0.0
+    assert locate.all_finite(values)
+    places = sorted({0, length - 1, *range(0, length, max(1, length // 40)),
+                     *range(max(0, length - 17), length)})
+    for place in places:
+        for bad in (np.nan, np.inf, -np.inf):
+            changed = values.copy()
+            changed[place] = bad
+            assert not locate.all_finite(changed), (place, bad)
+    assert locate.all_finite(np.empty(0))
+
+
 GRID_FOR_SCANS = lt.Grid(0.3, 10.0, 8, 12, 6)
