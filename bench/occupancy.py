@@ -105,8 +105,9 @@ def main(argv=None):
                      f"| {r['every_ray_walked_best_ms']:.1f} "
                      f"| {r['trace_many_all_threads_best_ms']:.1f} |")
     lines += ["", "speed-up: over the same scan on 1 thread; prepare (input checks and "
-              "scratch, in Python) runs on one thread, mark and apply on all; every ray "
-              "walked: the same call with the coherent scan switched off, same threads"]
+              "scratch) runs on one thread but for the finite check of the points, mark "
+              "and apply on all; every ray walked: the same call with the coherent scan "
+              "switched off, same threads"]
     write_results("occupancy", argv, "\n".join(lines), {"threads": counts, "rows": rows})
 
 
