@@ -390,13 +390,13 @@ class OccupancyGrid:
         log_odds = self._flat()
         self._last_scan = ScanStats(points.shape[0], skipped)
         grid = self.grid
-        n_cells = int(np.prod(grid.shape))
+        n_cells = math.prod(grid.shape)
         threads = numba.get_num_threads()
         update = (_logit(self.p_hit), _logit(self.p_miss), _logit(self.p_min), _logit(self.p_max))
         if self._cuda is not None:
             hits = self._cuda.integrate(grid, log_odds, points, origin, max_range, update,
                                         labels is not None)
-        elif not np.any(origin):
+        elif not any(origin.tolist()):
             # The egocentric case: every ray is radial. Hits are map indices.
             hits = np.empty(points.shape[0], dtype=np.int64)
             with _zeroed_scratch("extents", (threads, grid.n_theta * grid.n_phi),
@@ -422,7 +422,7 @@ class OccupancyGrid:
                                     view, *update)
                 lap("apply", start)
         if labels is not None:
-            if np.any(origin):  # the walk's hits are column-major (see apply_scan)
+            if any(origin.tolist()):  # the walk's hits are column-major (see apply_scan)
                 hit = hits >= 0
                 column, i = np.divmod(hits[hit], grid.n_rho)
                 hits[hit] = i * (grid.n_theta * grid.n_phi) + column
