@@ -158,4 +158,55 @@ def test_the_finite_check_finds_one_bad_value_at_any_place(length):
     assert locate.all_finite(np.empty(0))
 
 
+def _rays_step_by_step(origins, directions):
+    """What ``_validate.rays`` does for a small batch: each check in turn."""
+    from logsph_trace import _validate
+
+    origins = _validate.origin_size("origins", _validate.vectors("origins", origins))
+    directions = _validate.vectors("directions", directions, rows=origins.shape[0])
+    return origins, _validate.unit_directions(directions)
+
+
+def test_a_large_batch_of_rays_is_checked_in_one_pass_with_the_same_result():
+    # From PARALLEL_CHECK_ROWS rays one kernel checks every row and scales
+    # the directions; its units are bit for bit those of the checks in turn,
+    # also for directions so long or short that norm3 rescales them.
+    from logsph_trace import _validate
+
+    rows = _validate.PARALLEL_CHECK_ROWS + 4099
+    rng = np.random.default_rng(11)
+    origins = rng.normal(size=(rows, 3)) * 10.0 ** rng.uniform(-200, 150, (rows, 1))
+    directions = rng.normal(size=(rows, 3)) * 10.0 ** rng.uniform(-300, 300, (rows, 1))
+    directions[::97, 1:] = 0.0  # along an axis
+    got = _validate.rays(origins, directions)
+    want = _rays_step_by_step(origins, directions)
+    for a, b in zip(got, want):
+        assert a.flags.c_contiguous and a.dtype == np.float64
+        np.testing.assert_array_equal(a.view(np.uint64), b.view(np.uint64))
+    packed = _validate.rays(np.hstack([origins, directions]), None)  # the (m, 6) form
+    np.testing.assert_array_equal(packed[1].view(np.uint64), want[1].view(np.uint64))
+
+
+@pytest.mark.parametrize("which, column, bad, match", [
+    ("origins", 0, np.nan, "origins must be finite"),
+    ("origins", 2, 2e154, "origins must be shorter than about 1e154"),
+    ("directions", 1, -np.inf, "directions must be finite"),
+    ("directions", None, 0.0, "directions must be non-zero"),
+])
+def test_a_large_batch_of_rays_names_its_first_faulty_row(which, column, bad, match):
+    from logsph_trace import _validate
+
+    rows = _validate.PARALLEL_CHECK_ROWS + 4099
+    rng = np.random.default_rng(12)
+    arrays = {"origins": rng.normal(size=(rows, 3)), "directions": rng.normal(size=(rows, 3))}
+    for row in (rows - 3, 5000, rows - 1):  # the first of them is named
+        if column is None:
+            arrays[which][row] = bad
+        else:
+            arrays[which][row, column] = bad
+    with pytest.raises(ValueError, match=match) as error:
+        _validate.rays(arrays["origins"], arrays["directions"])
+    assert "row 5000 is" in str(error.value)
+
+
 GRID_FOR_SCANS = lt.Grid(0.3, 10.0, 8, 12, 6)

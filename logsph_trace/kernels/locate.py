@@ -167,6 +167,33 @@ def row_norms(vectors, out):
 
 
 @jit(parallel=True)
+def unit_rays(origins, directions, units):
+    """Check a batch of rays and scale its directions to unit length, on all threads.
+
+    ``units[r] = directions[r] / norm3(directions[r])``, the same divisions
+    as ``_validate.unit_directions``. Returns whether every row is valid:
+    finite coordinates, an origin whose squared length is finite, a
+    non-zero direction. When not, the caller checks again row by row to
+    name the first fault (``x * 0.0`` is 0 only for a finite x).
+    """
+    n = origins.shape[0]
+    bad = 0
+    for block in prange((n + 4095) // 4096):
+        flawed = False
+        for row in range(block * 4096, min(n, (block + 1) * 4096)):
+            x, y, z = origins[row, 0], origins[row, 1], origins[row, 2]
+            a, b, c = directions[row, 0], directions[row, 1], directions[row, 2]
+            length = norm3(a, b, c)
+            flawed |= not ((x * x + y * y + z * z) * 0.0 == 0.0
+                           and a * 0.0 + b * 0.0 + c * 0.0 == 0.0 and length > 0.0)
+            units[row, 0] = a / length
+            units[row, 1] = b / length
+            units[row, 2] = c / length
+        bad += flawed
+    return bad == 0
+
+
+@jit(parallel=True)
 def all_finite(values):
     """Whether every value of a 1D float64 array is finite (no NaN, no inf).
 
