@@ -105,8 +105,8 @@ def measure(n_rays, cells, repeats, thread_counts):
             "speedup_over_one_thread": one / run["seconds"],
             "phases_s": run["phases"],
             # What runs on one thread whatever the thread count: Python between
-            # the kernels, the halves' sampled bounds and the final shrink,
-            # against the one-thread time.
+            # the kernels, the halves' sampled bounds and the final shrink, and
+            # the input check, against the one-thread time.
             "serial_part_of_one_thread": sum(run["phases"].get(p, 0.0) for p in SERIAL) / one,
         }
 
@@ -127,8 +127,11 @@ def measure(n_rays, cells, repeats, thread_counts):
     }
 
 
-PHASES = ("bound", "trace", "allocate", "shrink", "other")
-SERIAL = ("bound", "shrink", "other")
+# "check": the input checks, on all threads from 32,768 rays; counted as serial all the
+# same (the coercion and the small batches' checks are), so the serial part is an upper
+# bound.
+PHASES = ("check", "bound", "trace", "allocate", "shrink", "other")
+SERIAL = ("check", "bound", "shrink", "other")
 
 
 def table(result, first_call):
@@ -161,7 +164,8 @@ def table(result, first_call):
                          f"| {row['speedup_over_one_thread']:.2f}x | {phases} "
                          f"| {100 * row['serial_part_of_one_thread']:.1f}% |")
     lines += ["", "speed-up: over the same call on 1 thread; serial part: the phases that run "
-              "on one thread whatever the thread count (bound, shrink, other), as a share of the "
+              "on one thread whatever the thread count (bound, shrink, other) and the input check "
+              "(check: on all threads from 32,768 rays, counted all the same), as a share of the "
               "one-thread time; out=TraceBuffers: the same arrays reused every call; ordered "
               "chunks: the path trace_many takes from 3 threads on (2 threads take the "
               "halves), forced at every thread count above 1, speed-up over exact on 1 "

@@ -77,9 +77,10 @@ _phases = threading.local()
 def phase_times():
     """Yield a dict of the seconds each batch phase took in this block (a benchmark hook).
 
-    The batch phases are "bound" (the parallel paths' sampled bounds),
-    "allocate", "trace", "shrink" and "other" (Python between the kernels);
-    a cone's are "bound", "trace" and
+    The batch phases are "check" (the input checks of ``trace_many``, on
+    all threads from ``_validate.PARALLEL_CHECK_ROWS`` rays), "bound" (the
+    parallel paths' sampled bounds), "allocate", "trace", "shrink" and "other"
+    (Python between the kernels); a cone's are "bound", "trace" and
     "aggregate", an integration's "prepare", "mark" and "apply". Only this
     thread's calls are counted.
     """

@@ -1,9 +1,11 @@
 """A Cartesian voxel box traced by Amanatides & Woo: the baseline every timing is a ratio to."""
 
+import time
+
 import numpy as np
 
 from . import _validate as validate
-from ._batching import BatchKernels, run_batch
+from ._batching import BatchKernels, lap, run_batch
 from .kernels import cartesian as _kernels
 from .traces import Traces
 
@@ -42,7 +44,9 @@ class CartesianGrid:
 
     def trace_many(self, origins, directions=None, parallel=True):
         """Voxels each ray crosses, as :class:`~logsph_trace.Traces` (the CSR of trace_many)."""
+        start = time.perf_counter()
         origins, directions = validate.rays(origins, directions)
+        lap("check", start)
         inputs = (origins, directions, self.low, self.voxel_size, self._shape)
         worst = int(self._shape.sum())
         return run_batch(BOX_KERNELS, inputs, inputs, inputs, origins.shape[0], worst, parallel)

@@ -4,6 +4,8 @@ Inputs are checked once (``_validate``); batches go to the kernels through
 the memory strategy of ``_batching``; results are ``Trace`` and ``Traces``.
 """
 
+import time
+
 import numpy as np
 
 from . import _batching as batching
@@ -90,6 +92,7 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     RuntimeError
         ``device="cuda"`` without a usable GPU or numba-cuda.
     """
+    start = time.perf_counter()
     validate.grid(grid)
     validate.choice("method", method, METHODS)
     validate.device(device)
@@ -114,6 +117,7 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     parallel = bool(parallel)
     if method == "exact":
         t_max = validate.distances(t_max, origins.shape[0])
+        batching.lap("check", start)
         if device == "cuda":
             return cuda_backend().trace_many(grid, origins, directions, t_max)
         return batching.run_exact(grid, origins, directions, t_max, parallel, out)
