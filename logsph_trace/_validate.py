@@ -390,6 +390,30 @@ def probability(name, value, low=0.0, high=1.0):
     return number
 
 
+def held(what, array, dtype, shape, remedy, write=True):
+    """Raise ValueError unless an array an object holds between calls is as the kernels need it.
+
+    ``array`` must still be a C-contiguous, aligned ``dtype`` array of
+    ``shape`` (``None``: any length on that axis), writeable when ``write``.
+    O(1), for every use: numpy lets an array's shape, dtype and flags be
+    changed in place (``a.dtype = np.float64`` halves a float32 array), and a
+    kernel indexing the old layout would read or write past its end.
+    """
+    if not isinstance(array, np.ndarray):
+        raise ValueError(f"{what} must be a numpy array, got {type(array).__name__}")
+    flags = array.flags
+    fits = array.dtype == dtype and array.ndim == len(shape) and all(
+        want is None or got == want for got, want in zip(array.shape, shape))
+    if not (fits and flags.c_contiguous and flags.aligned and (flags.writeable or not write)):
+        wanted = "(" + ", ".join("n" if n is None else str(n) for n in shape) + \
+            ("," if len(shape) == 1 else "") + ")"
+        raise ValueError(
+            f"{what} was changed in place: it must stay a {'writeable, ' if write else ''}"
+            f"C-contiguous {np.dtype(dtype)} array of shape {wanted}, got {array.dtype} "
+            f"{array.shape}, writeable={flags.writeable}, C-contiguous={flags.c_contiguous}; "
+            f"{remedy}")
+
+
 def log_odds(value, shape):
     """Check a map's log-odds: return a writeable C-contiguous float32 array of ``shape``."""
     try:

@@ -290,23 +290,14 @@ class OccupancyGrid:
         return log_odds.reshape(log_odds.size)
 
     def _checked(self, write=True):
-        """Return the host map, after checking it is still what the kernels may write.
+        """Return the host map, after checking it is still what the kernels index.
 
-        O(1). numpy lets an array's shape, dtype and flags change in place
-        (``log_odds.dtype = np.float64`` halves its length), and the kernels
-        index the map as ``grid.size`` float32 cells. ``write=False``: for
-        numpy reads, which need not write.
+        The kernels index it as ``grid.size`` float32 cells (``validate.held``).
+        ``write=False``: for numpy reads, which need not write.
         """
-        log_odds = self._log_odds
-        flags = log_odds.flags
-        if not (log_odds.dtype == np.float32 and log_odds.shape == self._grid.shape
-                and flags.c_contiguous and flags.aligned and (flags.writeable or not write)):
-            raise ValueError(
-                f"log_odds was changed in place: it must stay a writeable, C-contiguous "
-                f"float32 array of shape {self._grid.shape}, got {log_odds.dtype} "
-                f"{log_odds.shape}, writeable={flags.writeable}; assign a new array to "
-                "log_odds instead")
-        return log_odds
+        validate.held("log_odds", self._log_odds, np.float32, self._grid.shape,
+                      "assign a new array to log_odds instead", write)
+        return self._log_odds
 
     def to_host(self):
         """Return the map on the CPU: ``self`` for a CPU map, else a copy."""

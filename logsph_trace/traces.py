@@ -4,6 +4,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _validate as validate
+
 
 @dataclass(frozen=True)
 class Trace:
@@ -116,26 +118,14 @@ class Traces:
         return f"Traces({len(self)} rays, {self.cells.shape[0]} segments)"
 
 
-def _check_writable(name, array, dtype, ndim):
-    """Raise ValueError unless ``array`` is a writeable, aligned, C-contiguous array.
-
-    Of ``dtype`` and ``ndim`` dimensions: what the kernels write into.
-    """
-    if not isinstance(array, np.ndarray):
-        raise ValueError(f"TraceBuffers.{name} must be a numpy array, got {type(array).__name__}")
-    flags = array.flags
-    if not (array.dtype == dtype and array.ndim == ndim and flags.c_contiguous
-            and flags.aligned and flags.writeable):
-        raise ValueError(
-            f"TraceBuffers.{name} was changed in place: it must stay a writeable, aligned, "
-            f"C-contiguous {ndim}-d {np.dtype(dtype)} array, got {array.ndim}-d {array.dtype}, "
-            f"writeable={flags.writeable}, C-contiguous={flags.c_contiguous}; "
-            "use a new TraceBuffers()")
-
-
 def _host(array):
     """``array`` as numpy: device arrays are copied back, numpy arrays pass through."""
     return array if isinstance(array, np.ndarray) else array.copy_to_host()
+
+
+def _read_only(name, doc):
+    """Return a read-only attribute whose value is ``self.<name>``."""
+    return property(lambda self: getattr(self, name), doc=doc)
 
 
 class TraceBuffers:
@@ -169,25 +159,10 @@ class TraceBuffers:
     # The arrays are read-only attributes: the kernels write into them up to
     # the capacity they report, so an array swapped in from outside could be
     # written out of bounds. Their contents are the caller's to read.
-    @property
-    def offsets(self):
-        """Ray offsets, int64; the last call's are the first ``rays + 1``."""
-        return self._offsets
-
-    @property
-    def cells(self):
-        """Cells, int32, shape (capacity, 3)."""
-        return self._cells
-
-    @property
-    def t_enter(self):
-        """Entry distances, float64, shape (capacity,)."""
-        return self._t_enter
-
-    @property
-    def t_exit(self):
-        """Exit distances, float64, shape (capacity,)."""
-        return self._t_exit
+    offsets = _read_only("_offsets", "Ray offsets, int64; the last call's are the first rays + 1.")
+    cells = _read_only("_cells", "Cells, int32, shape (capacity, 3).")
+    t_enter = _read_only("_t_enter", "Entry distances, float64, shape (capacity,).")
+    t_exit = _read_only("_t_exit", "Exit distances, float64, shape (capacity,).")
 
     @property
     def capacity(self):
@@ -222,16 +197,13 @@ class TraceBuffers:
         array's shape, dtype and flags be changed in place, so this reads
         them again on every call.
         """
-        cells, t_enter, t_exit = self._cells, self._t_enter, self._t_exit
-        _check_writable("offsets", self._offsets, np.int64, 1)
-        _check_writable("cells", cells, np.int32, 2)
-        _check_writable("t_enter", t_enter, np.float64, 1)
-        _check_writable("t_exit", t_exit, np.float64, 1)
-        if cells.shape[1] != 3 or not cells.shape[0] == t_enter.shape[0] == t_exit.shape[0]:
-            raise ValueError(
-                "TraceBuffers' arrays were changed in place: cells must stay (n, 3) and "
-                f"t_enter and t_exit (n,), got {cells.shape}, {t_enter.shape} and "
-                f"{t_exit.shape}; use a new TraceBuffers()")
+        remedy = "use a new TraceBuffers()"
+        validate.held("TraceBuffers.t_enter", self._t_enter, np.float64, (None,), remedy)
+        n = self.capacity  # the rows every segment array must hold
+        for name, dtype, shape in (("offsets", np.int64, (None,)), ("cells", np.int32, (n, 3)),
+                                   ("t_exit", np.float64, (n,))):
+            validate.held(f"TraceBuffers.{name}", getattr(self, "_" + name), dtype, shape,
+                          remedy)
 
     def __repr__(self):
         return f"TraceBuffers({self.capacity:,} segments, {self.nbytes / 2**20:.1f} MiB)"
