@@ -257,22 +257,20 @@ def origin_size(name, origins):
 
 
 def _unit_rays(origins, directions):
-    """``rays``' result for a large valid batch, in one pass on all threads; else None.
+    """``rays``' result for a valid batch, in one pass on all threads; else None.
 
-    None for a small batch (one thread is quicker than waking the others),
-    for input that does not coerce cleanly, or for any faulty row: ``rays``
-    then checks step by step, which names the first fault. The result is
-    the same array for array as that path's.
+    ``origins``: already a C-contiguous (m, 3) float64 array. None for
+    directions that do not coerce cleanly to the same shape, or for any
+    faulty row: ``rays`` then checks step by step, which names the first
+    fault. The result is the same array for array as that path's.
     """
     try:
-        origins = np.ascontiguousarray(origins, dtype=np.float64)
         directions = np.ascontiguousarray(directions, dtype=np.float64)
     except (TypeError, ValueError):
         return None
-    rows = origins.shape[0] if origins.ndim == 2 else 0
-    if rows < PARALLEL_CHECK_ROWS or origins.shape != (rows, 3) or directions.shape != (rows, 3):
+    if directions.shape != origins.shape:
         return None
-    units = np.empty((rows, 3))
+    units = np.empty(origins.shape)
     return (origins, units) if _locate.unit_rays(origins, directions, units) else None
 
 
@@ -285,9 +283,11 @@ def rays(origins, directions):
                 f"got shape {np.shape(origins)}"
             )
         origins, directions = array[:, :3], array[:, 3:]
-    fast = _unit_rays(origins, directions)
-    if fast is not None:
-        return fast
+    origins = np.ascontiguousarray(_rows_of_three("origins", origins))
+    if origins.shape[0] >= PARALLEL_CHECK_ROWS:  # below, one thread beats waking the others
+        fast = _unit_rays(origins, directions)
+        if fast is not None:
+            return fast
     origins = origin_size("origins", vectors("origins", origins))
     directions = vectors("directions", directions, rows=origins.shape[0])
     return origins, unit_directions(directions)
