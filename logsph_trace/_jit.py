@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numba
-from numba.core import caching
+from numba.core import caching, event
 
 
 def prefer_tbb():
@@ -205,6 +205,57 @@ def cache_by_package(root, impl=None):
 
 cache_by_package(Path(__file__).parent)
 _OPTIONS = dict(cache=CACHE, nogil=True, error_model="numpy")
+
+# The first use after an install compiles the kernels a call needs, which
+# takes seconds (``logsph-trace demo``: about 30 s on the 2-core test
+# machine) with nothing on screen; a cached kernel loads in milliseconds.
+NOTE = os.environ.get("LOGSPH_TRACE_COMPILE_NOTE", "1").strip() != "0"
+
+
+class CompileNote(event.Listener):
+    """Say on stderr, once per process, that the package's kernels are compiling.
+
+    Numba fires a ``numba:compile`` event only when it compiles, never when
+    it loads a kernel from the cache, so the note appears exactly on a cold
+    first use: the first run after an install or an edit, or every run under
+    ``LOGSPH_TRACE_CACHE=0``. ``LOGSPH_TRACE_COMPILE_NOTE=0`` silences it.
+    Other packages' Numba functions are none of its business.
+    """
+
+    def __init__(self, package, stream=None):
+        self.package = package
+        self.stream = stream  # None: sys.stderr at the time of the note
+        self.said = False
+        self._lock = threading.Lock()
+
+    def message(self):
+        """Return the line, saying whether later runs will load the kernels from the cache."""
+        after = ("cached for later runs" if CACHE
+                 else "not cached: LOGSPH_TRACE_CACHE=0")
+        return (f"{self.package}: compiling Numba kernels for their first use "
+                f"(about 10-30 s; {after})...")
+
+    def on_start(self, ev):
+        if self.said:
+            return
+        dispatcher = (ev.data or {}).get("dispatcher")
+        module = getattr(getattr(dispatcher, "py_func", None), "__module__", None) or ""
+        if module.partition(".")[0] != self.package:
+            return
+        with self._lock:
+            if self.said:
+                return
+            self.said = True
+        stream = self.stream if self.stream is not None else sys.stderr
+        if NOTE and stream is not None:
+            print(self.message(), file=stream, flush=True)
+
+    def on_end(self, ev):
+        pass
+
+
+COMPILE_NOTE = CompileNote(__name__.partition(".")[0])
+event.register("numba:compile", COMPILE_NOTE)
 
 
 def jit(func=None, runtime=False, **overrides):

@@ -19,7 +19,6 @@ import math
 import os
 import re
 import sys
-import threading
 import time
 import warnings
 from pathlib import Path
@@ -219,23 +218,6 @@ def _print_cone(cone, fmt, stream):
     _print_rows(rows, columns, fmt, stream)
 
 
-# Loading the cached kernels takes 0.4-0.6 s on the 2-core test machine, more
-# when it is busy; compiling them takes 10-25 s.
-COMPILING_AFTER_S = 2.0
-
-
-def _compiling_note(warm_up):
-    """Run ``warm_up()``; if it takes over ``COMPILING_AFTER_S`` (kernels compiling), say so."""
-    note = "logsph-trace: compiling kernels (first run only, 10-25 s)..."
-    timer = threading.Timer(COMPILING_AFTER_S, print, (note,),
-                            {"file": sys.stderr, "flush": True})
-    timer.start()
-    try:
-        warm_up()
-    finally:
-        timer.cancel()
-
-
 def cmd_trace(args):
     """``logsph-trace trace``: one ray, a gaze cone, or a batch file."""
     from ._files import npz_path
@@ -253,7 +235,8 @@ def cmd_trace(args):
         if not out.resolve().parent.is_dir():
             raise CliError(f"--out: no such directory: {out.parent}")
         rays = _load_rays(args.rays)
-        _compiling_note(lambda: trace_many(grid, np.zeros((1024, 3)), np.ones((1024, 3))))
+        # Compile (and say so, on a first run) before the progress bar starts.
+        trace_many(grid, np.zeros((1024, 3)), np.ones((1024, 3)))
         progress = not args.quiet and sys.stderr.isatty()  # no \r frames in a log file
         count, segments, seconds = _trace_batch(grid, rays, out, progress=progress)
         print(f"{count:,} rays, {segments:,} segments in {seconds:.2f} s -> {out}")
@@ -265,12 +248,9 @@ def cmd_trace(args):
             raise CliError(f"--cone must be a half-angle in [0, 90) degrees, got {args.cone:g}")
         with warnings.catch_warnings():  # degrees were typed: radians came from np.radians
             warnings.simplefilter("ignore")
-            _compiling_note(lambda: trace_cone(grid, args.origin, args.direction, 0.01,
-                                               n_rays=64))
             result = trace_cone(grid, args.origin, args.direction, np.radians(args.cone))
         _print_cone(result, args.format, sys.stdout)
     else:
-        _compiling_note(lambda: trace(grid, args.origin, args.direction))
         _print_trace(trace(grid, args.origin, args.direction), args.format, sys.stdout)
     return 0
 

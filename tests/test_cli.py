@@ -320,7 +320,7 @@ def test_the_first_run_says_kernels_are_compiling(tmp_path):
     result = subprocess.run([_entry_point(), "trace", *RAY], capture_output=True, text=True,
                             cwd=REPO, env=env, timeout=600)
     assert result.returncode == 0, result.stderr
-    assert "compiling kernels" in result.stderr
+    assert result.stderr.count("compiling Numba kernels") == 1  # one line, however many compile
     again = subprocess.run([_entry_point(), "trace", *RAY], capture_output=True, text=True,
                            cwd=REPO, env=env, timeout=600)
-    assert "compiling kernels" not in again.stderr
+    assert "compiling" not in again.stderr

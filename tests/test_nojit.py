@@ -258,3 +258,55 @@ def test_each_method_compiles_first_in_a_fresh_process(method):
                          timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert int(out.stdout.split()[-1]) > 0
+
+
+def _njit_in(module):
+    """A fresh Numba function that says it is defined in ``module``."""
+    import numba
+
+    def twice(x):
+        return 2 * x
+
+    twice.__module__ = module
+    return numba.njit(cache=False)(twice)
+
+
+def test_a_first_compile_is_noted_once_per_process(monkeypatch):
+    import io
+
+    import numba.core.event as event
+
+    from logsph_trace import _jit
+
+    stream = io.StringIO()
+    note = _jit.CompileNote("logsph_trace", stream)
+    monkeypatch.setattr(_jit, "NOTE", True)
+    event.register("numba:compile", note)
+    try:
+        assert _njit_in("other_package.kernels")(1.5) == 3.0  # not ours: no note
+        assert stream.getvalue() == ""
+        assert _njit_in("logsph_trace.kernels.probe")(2) == 4
+        assert _njit_in("logsph_trace.kernels.probe")(2.5) == 5.0
+    finally:
+        event.unregister("numba:compile", note)
+    assert stream.getvalue() == note.message() + "\n"
+    assert "compiling Numba kernels" in note.message()
+
+
+def test_the_compile_note_can_be_silenced(monkeypatch):
+    import io
+
+    import numba.core.event as event
+
+    from logsph_trace import _jit
+
+    stream = io.StringIO()
+    note = _jit.CompileNote("logsph_trace", stream)
+    monkeypatch.setattr(_jit, "NOTE", False)
+    event.register("numba:compile", note)
+    try:
+        assert _njit_in("logsph_trace.kernels.probe")(3) == 6
+    finally:
+        event.unregister("numba:compile", note)
+    assert note.said and stream.getvalue() == ""
+
