@@ -18,6 +18,7 @@ import json
 import math
 import os
 import re
+import shutil
 import sys
 import time
 import warnings
@@ -131,6 +132,8 @@ def _trace_batch(grid, rays, out, progress):
     """
     import tempfile
 
+    from tqdm import tqdm
+
     from ._files import atomic_write
     from .trace import trace_many
 
@@ -140,6 +143,11 @@ def _trace_batch(grid, rays, out, progress):
     layout = {"cells": (np.int32, (3,)), "t_enter": (np.float64, ()), "t_exit": (np.float64, ())}
     with tempfile.TemporaryDirectory(dir=Path(out).resolve().parent) as scratch:
         files = {name: open(Path(scratch) / f"{name}.bin", "wb") for name in layout}
+        # A terminal that reports no size (a bare pty) gets 80x24: tqdm would
+        # hide its bar on a screen 0 lines high.
+        screen = shutil.get_terminal_size()
+        bar = tqdm(total=total, unit="ray", unit_scale=True, disable=not progress,
+                   file=sys.stderr, ncols=screen.columns, nrows=screen.lines)
         try:
             for first in range(0, total, CHUNK_RAYS):
                 try:
@@ -152,16 +160,11 @@ def _trace_batch(grid, rays, out, progress):
                 counts[first:first + len(chunk)] = chunk.counts
                 for name, handle in files.items():
                     getattr(chunk, name).tofile(handle)
-                if progress:
-                    done = min(first + CHUNK_RAYS, total)
-                    bar = "#" * int(30 * done / total)
-                    print(f"\r[{bar:<30}] {done:,}/{total:,} rays", end="", file=sys.stderr,
-                          flush=True)
+                bar.update(len(chunk))
         finally:
+            bar.close()
             for handle in files.values():
                 handle.close()
-        if progress:
-            print(file=sys.stderr)
         offsets = np.zeros(total + 1, dtype=np.int64)
         np.cumsum(counts, out=offsets[1:])
         segments = int(offsets[-1])

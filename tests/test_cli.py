@@ -299,6 +299,34 @@ def test_a_csv_header_row_is_accepted(tmp_path):
     np.testing.assert_array_equal(saved["offsets"], lt.trace_many(grid, rays).offsets)
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a pty, as Linux makes one")
+def test_the_progress_bar_shows_in_a_terminal_of_unknown_size(tmp_path):
+    """A fresh pty reports a 0 x 0 screen, on which tqdm alone would hide its bar."""
+    import pty
+
+    path, _ = _rays_file(tmp_path)
+    main, terminal = pty.openpty()
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
+    with subprocess.Popen([_entry_point(), "trace", "--rays", str(path), "--out",
+                           str(tmp_path / "t.npz")], stdin=terminal, stdout=terminal,
+                          stderr=terminal, cwd=REPO, env=env) as process:
+        os.close(terminal)
+        shown = b""
+        while True:
+            try:
+                chunk = os.read(main, 4096)
+            except OSError:  # EIO: the child closed its side
+                break
+            if not chunk:
+                break
+            shown += chunk
+    os.close(main)
+    frames = [f for f in shown.decode().replace("\n", "\r").split("\r") if f.strip()]
+    assert process.returncode == 0, shown
+    assert any(re.search(r"^100%.*\b300/300 .*ray/s", frame) for frame in frames), frames
+    assert frames[-1].startswith("300 rays, ")
+
+
 def test_no_progress_frames_in_a_log(tmp_path):
     path, _ = _rays_file(tmp_path)
     result = run("trace", "--rays", str(path), "--out", str(tmp_path / "t.npz"))
