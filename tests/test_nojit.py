@@ -271,42 +271,40 @@ def _njit_in(module):
     return numba.njit(cache=False)(twice)
 
 
-def test_a_first_compile_is_noted_once_per_process(monkeypatch):
+@pytest.fixture
+def listening(monkeypatch):
+    """``listening(on)``: a fresh compile note, on or off, listening while the test runs."""
     import io
 
     import numba.core.event as event
 
     from logsph_trace import _jit
 
-    stream = io.StringIO()
-    note = _jit.CompileNote("logsph_trace", stream)
-    monkeypatch.setattr(_jit, "NOTE", True)
-    event.register("numba:compile", note)
-    try:
-        assert _njit_in("other_package.kernels")(1.5) == 3.0  # not ours: no note
-        assert stream.getvalue() == ""
-        assert _njit_in("logsph_trace.kernels.probe")(2) == 4
-        assert _njit_in("logsph_trace.kernels.probe")(2.5) == 5.0
-    finally:
+    notes = []
+
+    def start(on):
+        monkeypatch.setattr(_jit, "NOTE", on)
+        note = _jit.CompileNote("logsph_trace", io.StringIO())
+        event.register("numba:compile", note)
+        notes.append(note)
+        return note
+
+    yield start
+    for note in notes:
         event.unregister("numba:compile", note)
-    assert stream.getvalue() == note.message() + "\n"
+
+
+def test_a_first_compile_is_noted_once_per_process(listening):
+    note = listening(True)
+    assert _njit_in("other_package.kernels")(1.5) == 3.0  # not ours: no note
+    assert note.stream.getvalue() == ""
+    assert _njit_in("logsph_trace.kernels.probe")(2) == 4
+    assert _njit_in("logsph_trace.kernels.probe")(2.5) == 5.0
+    assert note.stream.getvalue() == note.message() + "\n"
     assert "compiling Numba kernels" in note.message()
 
 
-def test_the_compile_note_can_be_silenced(monkeypatch):
-    import io
-
-    import numba.core.event as event
-
-    from logsph_trace import _jit
-
-    stream = io.StringIO()
-    note = _jit.CompileNote("logsph_trace", stream)
-    monkeypatch.setattr(_jit, "NOTE", False)
-    event.register("numba:compile", note)
-    try:
-        assert _njit_in("logsph_trace.kernels.probe")(3) == 6
-    finally:
-        event.unregister("numba:compile", note)
-    assert note.said and stream.getvalue() == ""
-
+def test_the_compile_note_can_be_silenced(listening):
+    note = listening(False)
+    assert _njit_in("logsph_trace.kernels.probe")(3) == 6
+    assert note.said and note.stream.getvalue() == ""
