@@ -372,6 +372,7 @@ class OccupancyGrid:
             if keep is not None:
                 labels = labels[keep]
         origin = validate.point("sensor_origin", sensor_origin)
+        at_centre = not any(origin.tolist())  # every ray radial: the egocentric case
         if max_range is None:
             max_range = np.inf
         else:
@@ -387,8 +388,7 @@ class OccupancyGrid:
         if self._cuda is not None:
             hits = self._cuda.integrate(grid, log_odds, points, origin, max_range, update,
                                         labels is not None)
-        elif not any(origin.tolist()):
-            # The egocentric case: every ray is radial. Hits are map indices.
+        elif at_centre:  # hits are map indices
             hits = np.empty(points.shape[0], dtype=np.int64)
             with _zeroed_scratch("extents", (threads, grid.n_theta * grid.n_phi),
                                  np.int64) as free_extent, \
@@ -413,7 +413,7 @@ class OccupancyGrid:
                                     view, *update)
                 lap("apply", start)
         if labels is not None:
-            if any(origin.tolist()):  # the walk's hits are column-major (see apply_scan)
+            if not at_centre:  # the walk's hits are column-major (see apply_scan)
                 hit = hits >= 0
                 column, i = np.divmod(hits[hit], grid.n_rho)
                 hits[hit] = i * (grid.n_theta * grid.n_phi) + column
