@@ -23,9 +23,11 @@ non-temporal stores from a scratch small enough to stay in the cache
 
 Fresh output is faulted in by the same workers while they trace, in
 blocks of ``TOUCH_ROWS`` rows claimed in order from a second counter
-(``touch_ahead``, ``touched``): each taken chunk lets its worker fault in
+(``touch_ahead``, ``touched``): before it takes a chunk, a worker faults in
 blocks up to where the chunks taken so far will end, by the segments a
-chunk has had, plus a lead. A block is faulted in by one thread, so no two
+chunk has had, plus a lead. It holds no chunk then, so no worker waits for
+it meanwhile (a block takes longer to fault in than a chunk to trace).
+A block is faulted in by one thread, so no two
 threads clear the same fresh (huge) page at once, as they do when the
 chunks' copies fault it in; and the faulting runs between the tracing
 instead of as a phase of its own, in which every thread would wait on the
@@ -172,7 +174,8 @@ def touched(first, last, fresh, cells, t_enter, t_exit):
 
 @jit
 def touch_ahead(chunk, lead, starts, fresh, cells, t_enter, t_exit):
-    """Fault in fresh blocks up to where chunk ``chunk + lead`` will about end.
+    """Fault in fresh blocks up to where chunk ``chunk + lead`` will about end
+    (the last chunk at most).
 
     Paced by the segments a chunk has had: by a start already published,
     that of chunk ``chunk - lead`` (nothing is faulted in while it is not).
@@ -184,7 +187,8 @@ def touch_ahead(chunk, lead, starts, fresh, cells, t_enter, t_exit):
     if known_start < 0:
         return
     per_chunk = (known_start - starts[0]) / known
-    target = min(fresh[FRESH_END], starts[0] + int(per_chunk * (chunk + lead + 1)))
+    ahead = min(chunk + lead + 1, starts.shape[0] - 1)
+    target = min(fresh[FRESH_END], starts[0] + int(per_chunk * ahead))
     while True:
         block = load_ordered(fresh, CLAIMED)
         if block >= fresh.shape[0] - DONE or fresh[FRESH_FIRST] + block * TOUCH_ROWS >= target:
@@ -238,9 +242,14 @@ def advance(chunk, waiting, worker, side, room, first_row, last_row, chunk_rays,
             counts, starts, reached, fresh, loose_cells, loose_enter, loose_exit, cells, t_enter,
             t_exit, offsets):
     """A worker's step after tracing ``chunk`` (-1: none was left) into its buffer
-    ``side``: place the chunk ``waiting`` in its other buffer, take the next,
-    and fault in fresh output ahead of it (``touch_ahead``, ``workers``
-    chunks on).
+    ``side``: place the chunk ``waiting`` in its other buffer, fault in fresh
+    output ahead of the next chunk to take (``touch_ahead``, ``workers``
+    chunks on), and take it.
+
+    The faulting comes before the take: a block takes longer to fault in
+    than a chunk to trace, and a worker holding a chunk not yet traced would
+    keep every worker that places a later chunk waiting for its count; one
+    holding none keeps no one waiting.
 
     Returns the next round's (waiting, side, chunk); the worker is done when
     both chunks are -1.
@@ -248,7 +257,7 @@ def advance(chunk, waiting, worker, side, room, first_row, last_row, chunk_rays,
     place(waiting, buffer_of(worker, 1 - side, room), first_row, last_row, chunk_rays, counts,
           starts, reached, fresh, loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit,
           offsets)
-    following = take(counter, counts.shape[0]) if chunk >= 0 else -1
-    if following >= 0:
-        touch_ahead(following, workers, starts, fresh, cells, t_enter, t_exit)
-    return chunk, 1 - side, following
+    if chunk < 0:
+        return chunk, 1 - side, -1
+    touch_ahead(load_ordered(counter, 0), workers, starts, fresh, cells, t_enter, t_exit)
+    return chunk, 1 - side, take(counter, counts.shape[0])
