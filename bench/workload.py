@@ -61,8 +61,10 @@ def timed(call, best=None, keep=lambda result: None):
     return best
 
 
-def thread_arguments(description, repeats, argv):
-    """Parse a benchmark's ``--threads`` and ``--repeats``; return (args, thread counts)."""
+def thread_arguments(description, repeats, argv, **sizes):
+    """Parse a benchmark's ``--threads`` and ``--repeats``, and an integer option per
+    keyword of ``sizes`` (``rays=100_000``: ``--rays``, default 100,000); return
+    (args, thread counts)."""
     import argparse
 
     import numba
@@ -71,6 +73,8 @@ def thread_arguments(description, repeats, argv):
     parser.add_argument("--threads", default=f"1,{numba.get_num_threads()}",
                         help="comma-separated thread counts (default: 1 and all)")
     parser.add_argument("--repeats", type=int, default=repeats)
+    for name, default in sizes.items():
+        parser.add_argument(f"--{name}", type=int, default=default)
     args = parser.parse_args(argv)
     return args, thread_counts(args.threads)
 

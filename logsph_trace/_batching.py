@@ -389,14 +389,18 @@ def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
     return traces
 
 
-def run_exact_ordered(grid, origins, directions, t_max, workers):
-    """Trace with the exact method in ordered chunks on ``workers`` (tests pick the count)."""
+def run_exact_ordered(grid, origins, directions, t_max, workers, buffers=None, touch_ahead=True):
+    """Trace with the exact method in ordered chunks on ``workers`` (``run_ordered``).
+
+    For tests and benchmarks, which pick the worker count.
+    """
     inputs = (origins, directions, t_max, grid.kernel_args())
     return run_ordered(EXACT_KERNELS, inputs, (origins, directions, inputs[3]), origins.shape[0],
-                       int(_exact.max_segments(*grid.shape)), workers)
+                       int(_exact.max_segments(*grid.shape)), workers, buffers, touch_ahead)
 
 
-def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=None):
+def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=None,
+                touch_ahead=True):
     """Trace in chunks taken in order and placed by the threads that traced them.
 
     See the module docstring and ``kernels.ordered``.
@@ -409,7 +413,9 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
     to write into (the result is views of it).
 
     Fresh output is faulted in by the workers as they go, each block of it
-    by one thread, ahead of the chunks (``ordered.touched``).
+    by one thread, ahead of the chunks (``ordered.touched``); with
+    ``touch_ahead=False`` (for ``bench.faults``, which times both) it is
+    faulted in by the chunks' copies instead.
     """
     start = time.perf_counter()
     strata, bounds = _sampled_bounds(kernels, bound_inputs, n_rays)
@@ -433,7 +439,8 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
     while row < n_rays:
         start = lap("allocate", start)
         reached = kernels.ordered(row, n_rays, chunk_rays, workers, *inputs, *scratch, *output,
-                                  offsets, used, output[0].shape[0] if fresh else used)
+                                  offsets, used,
+                                  output[0].shape[0] if fresh and touch_ahead else used)
         start = lap("trace", start)
         ends = np.minimum(row + chunk_rays * np.arange(1, reached.shape[0] + 1), n_rays)
         short = np.flatnonzero(reached < ends)
