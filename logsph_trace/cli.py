@@ -223,6 +223,7 @@ def _print_cone(cone, fmt, stream):
 
 def cmd_trace(args):
     """``logsph-trace trace``: one ray, a gaze cone, or a batch file."""
+    from ._batching import PARALLEL_MIN_RAYS
     from ._files import npz_path
     from .cone import trace_cone
     from .trace import trace, trace_many
@@ -238,8 +239,11 @@ def cmd_trace(args):
         if not out.resolve().parent.is_dir():
             raise CliError(f"--out: no such directory: {out.parent}")
         rays = _load_rays(args.rays)
-        # Compile (and say so, on a first run) before the progress bar starts.
-        trace_many(grid, np.zeros((1024, 3)), np.ones((1024, 3)))
+        # Compile (and say so, on a first run) before the progress bar starts:
+        # the serial pass, and the parallel path if the batch is large enough
+        # to take it.
+        for n in (1024, PARALLEL_MIN_RAYS) if len(rays) >= PARALLEL_MIN_RAYS else (1024,):
+            trace_many(grid, np.zeros((n, 3)), np.ones((n, 3)))
         progress = not args.quiet and sys.stderr.isatty()  # no \r frames in a log file
         count, segments, seconds = _trace_batch(grid, rays, out, progress=progress)
         print(f"{count:,} rays, {segments:,} segments in {seconds:.2f} s -> {out}")
