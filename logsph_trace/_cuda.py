@@ -328,11 +328,23 @@ def _cast_kernel(source, target):
 
 @kernel
 def _cast_rows_kernel(source, target):
-    """Row ``row`` (thread) of ``source`` into the float64 ``target`` (2-D)."""
+    """Row ``row`` (thread) of ``source`` into the float64 ``target`` (2-D).
+
+    A ``source`` of one row fills every row of ``target``.
+    """
     row = cuda.grid(1)
     if row < target.shape[0]:
+        read = min(row, source.shape[0] - 1)
         for column in range(target.shape[1]):
-            target[row, column] = source[row, column]
+            target[row, column] = source[read, column]
+
+
+def _repeat_row(row, n):
+    """Return a (n, columns) float64 device array whose every row is ``row``'s one row."""
+    target = cuda.device_array((n, row.shape[1]), dtype=np.float64)
+    if n:
+        _launch(_cast_rows_kernel, n, row, target)
+    return target
 
 
 @kernel
@@ -384,10 +396,7 @@ def _gpu_array(name, value, columns):
     elif validate.on_gpu(value):  # the simulator's device arrays
         array = value
     else:
-        try:
-            array = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"{name} must be numeric, got {value!r}") from None
+        array = validate.real_array(name, value)
         array = cuda.to_device(np.ascontiguousarray(array if columns is None
                                                     else np.atleast_2d(array)))
     wanted = "(m,)" if columns is None else f"(m, {columns})"
@@ -416,11 +425,9 @@ def trace_gpu_inputs(grid, origins, directions, t_max):
         both = _gpu_array("origins", origins, 6)
         origins, directions = both[:, :3], both[:, 3:]
     else:
-        origins = _gpu_array("origins", origins, 3)
-        directions = _gpu_array("directions", directions, 3)
-        if directions.shape[0] != origins.shape[0]:
-            raise ValueError(f"directions has {directions.shape[0]} rows but origins has "
-                             f"{origins.shape[0]}")
+        origins, directions = validate.shared_rows(_gpu_array("origins", origins, 3),
+                                                   _gpu_array("directions", directions, 3),
+                                                   _repeat_row)
     n = origins.shape[0]
     if validate.on_gpu(t_max):
         d_t_max = _gpu_array("t_max", t_max, None)

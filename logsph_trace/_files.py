@@ -9,6 +9,7 @@ target, if there was one, is left exactly as it was.
 """
 
 import contextlib
+import errno
 import os
 import tempfile
 from pathlib import Path
@@ -25,8 +26,12 @@ def _default_mode():
 def atomic_write(path):
     """Write ``path`` all or nothing: ``with atomic_write(path) as stream: ...``."""
     path = Path(path)
-    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.",
-                                             suffix=".part")
+    try:
+        descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.",
+                                                 suffix=".part")
+    except FileNotFoundError:  # name the target and its directory, not the temporary file
+        raise FileNotFoundError(errno.ENOENT, f"no such directory: '{path.parent}'",
+                                str(path)) from None
     try:
         os.fchmod(descriptor, _default_mode())  # mkstemp makes it private (0600)
         with os.fdopen(descriptor, "wb") as stream:

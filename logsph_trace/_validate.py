@@ -27,6 +27,44 @@ def count(name, value):
     return int(value)
 
 
+def _is_complex(value):
+    """Whether ``value`` is a complex number or array (``float`` would drop the imaginary part)."""
+    return isinstance(value, (complex, np.complexfloating)) or \
+        getattr(getattr(value, "dtype", None), "kind", "") == "c"
+
+
+def number(name, value, requirement):
+    """``value`` as a Python float, else ValueError "``name`` must be ``requirement``, got ...".
+
+    Text, None and complex numbers are refused, each with the argument's name.
+    """
+    try:
+        if _is_complex(value):
+            raise TypeError
+        return float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be {requirement}, got {value!r}") from None
+
+
+def real_array(name, value, requirement="numeric"):
+    """``value`` as a float64 array (no copy when it is one), else ValueError naming ``name``.
+
+    Integers, booleans and arrays of Python numbers convert as numpy converts
+    them. Text, dates and complex numbers are refused: numpy would parse the
+    text, or drop the imaginary parts with only a warning.
+    """
+    try:
+        array = np.asarray(value)
+        if array.dtype.kind == "c":
+            requirement = "real, not complex"
+            raise TypeError
+        if array.dtype.kind not in "biufO":
+            raise TypeError
+        return array.astype(np.float64, copy=False)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be {requirement}, got {value!r}") from None
+
+
 # Bytes a grid holds per edge of an axis: the edges and, for the kernels, up to
 # three derived arrays (squares, sines and cosines, tangents and signs).
 _BYTES_PER_EDGE = 4 * 8
@@ -40,13 +78,10 @@ def cell_count(name, value):
 
 
 def finite(name, value):
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a finite number, got {value!r}") from None
-    if not math.isfinite(number):
+    result = number(name, value, "a finite number")
+    if not math.isfinite(result):
         raise ValueError(f"{name} must be a finite number, got {value!r}")
-    return number
+    return result
 
 
 def pair_range(name, value):
@@ -103,7 +138,7 @@ def phi_range(low, high, name):
 
 
 def points(name, points):
-    array = np.asarray(points, dtype=np.float64)
+    array = real_array(name, points)
     single = array.ndim == 1
     if single:
         array = array[None, :]
@@ -166,10 +201,7 @@ def host_only(device, **values):
 
 def _rows_of_three(name, value, rows=None):
     """Coerce to a (m, 3) float64 array (a (3,) vector is one row)."""
-    try:
-        array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be numeric, got {value!r}") from None
+    array = real_array(name, value)
     if array.ndim == 1:
         array = array[None, :]
     if array.ndim != 2 or array.shape[1] != 3:
@@ -265,8 +297,8 @@ def _unit_rays(origins, directions):
     fault. The result is the same array for array as that path's.
     """
     try:
-        directions = np.ascontiguousarray(directions, dtype=np.float64)
-    except (TypeError, ValueError):
+        directions = np.ascontiguousarray(real_array("directions", directions))
+    except ValueError:
         return None
     if directions.shape != origins.shape:
         return None
@@ -274,16 +306,45 @@ def _unit_rays(origins, directions):
     return (origins, units) if _locate.unit_rays(origins, directions, units) else None
 
 
+def _repeat_row(row, n):
+    return np.ascontiguousarray(np.broadcast_to(row, (n, row.shape[1])))
+
+
+def shared_rows(origins, directions, repeat=_repeat_row):
+    """Pair (m, 3) origins with (m, 3) directions; a single row on either side serves every ray.
+
+    That is numpy's broadcasting of a row of one: one eye and many
+    directions, or many origins and one direction. The shared row is
+    repeated, ``repeat(row, m)``, since every ray needs its own (24 bytes
+    a ray); the GPU passes its own ``repeat``.
+    """
+    m, n = origins.shape[0], directions.shape[0]
+    if m == 1 and n != 1:
+        origins = repeat(origins, n)
+    elif n == 1 and m != 1:
+        directions = repeat(directions, m)
+    elif m != n:
+        raise ValueError(f"directions has {n} rows but origins has {m}")
+    return origins, directions
+
+
 def rays(origins, directions):
+    """Check a batch of rays: C-contiguous (m, 3) float64 origins and unit directions.
+
+    ``directions=None`` reads (m, 6) rows of origin + direction; otherwise a
+    single origin or direction is shared by every ray (:func:`shared_rows`).
+    """
     if directions is None:
-        array = np.asarray(origins, dtype=np.float64)
+        array = real_array("origins", origins)
         if array.ndim != 2 or array.shape[1] != 6:
             raise ValueError(
                 "with directions=None, origins must be one (m, 6) array of origin + direction, "
                 f"got shape {np.shape(origins)}"
             )
         origins, directions = array[:, :3], array[:, 3:]
-    origins = np.ascontiguousarray(_rows_of_three("origins", origins))
+    origins, directions = shared_rows(_rows_of_three("origins", origins),
+                                      _rows_of_three("directions", directions))
+    origins = np.ascontiguousarray(origins)
     if origins.shape[0] >= PARALLEL_CHECK_ROWS:  # below, one thread beats waking the others
         fast = _unit_rays(origins, directions)
         if fast is not None:
@@ -297,10 +358,7 @@ def distances(t_max, n_rays):
     """``t_max`` as a contiguous (m,) float64 array; ``None`` is no limit."""
     if t_max is None:
         return np.full(n_rays, np.inf)
-    try:
-        array = np.asarray(t_max, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"t_max must be a number or an array of numbers, got {t_max!r}") from None
+    array = real_array("t_max", t_max, "a number or an array of numbers")
     if array.ndim == 0:
         array = np.full(n_rays, float(array))
     if array.shape != (n_rays,):
@@ -312,10 +370,7 @@ def distances(t_max, n_rays):
 
 
 def bisect_options(grid, default_t, max_iter):
-    try:
-        default_t = float(default_t)
-    except (TypeError, ValueError):
-        raise ValueError(f"default_t must be a positive number, got {default_t!r}") from None
+    default_t = number("default_t", default_t, "a positive number")
     if not (np.isfinite(default_t) and default_t > 0):
         raise ValueError(f"default_t must be a positive finite number, got {default_t!r}")
     if max_iter is None:
@@ -328,10 +383,7 @@ def bisect_options(grid, default_t, max_iter):
 
 def half_angle(half_angle, name="half_angle"):
     """Check a cone half-angle: radians in [0, pi/2); warn above ``DEGREES_LIKELY``."""
-    try:
-        value = float(half_angle)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number of radians, got {half_angle!r}") from None
+    value = number(name, half_angle, "a number of radians")
     if not (np.isfinite(value) and 0.0 <= value < np.pi / 2):
         raise ValueError(f"{name} must be in [0, pi/2) radians, got {half_angle!r}")
     if value > DEGREES_LIKELY:
@@ -381,13 +433,10 @@ DEGREES_LIKELY = math.radians(30.0)
 
 
 def probability(name, value, low=0.0, high=1.0):
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a probability, got {value!r}") from None
-    if not (low < number < high):
+    result = number(name, value, "a probability")
+    if not (low < result < high):
         raise ValueError(f"{name} must be in ({low:g}, {high:g}), got {value!r}")
-    return number
+    return result
 
 
 def held(what, array, dtype, shape, remedy, write=True):

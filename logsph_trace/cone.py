@@ -186,10 +186,7 @@ def _ray_weights(angles, half_angle, weighting, sigma):
     else:
         if sigma is None:
             sigma = half_angle / 2.0  # the cone's edge at two standard deviations
-        try:
-            sigma = float(sigma)
-        except (TypeError, ValueError):
-            raise ValueError(f"sigma must be a positive number of radians, got {sigma!r}") from None
+        sigma = validate.number("sigma", sigma, "a positive number of radians")
         if not (np.isfinite(sigma) and sigma > 0.0):
             raise ValueError(f"sigma must be a positive number of radians, got {sigma!r}")
         # Relative to the ray nearest the axis, so a sigma far below the spacing
@@ -393,10 +390,7 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     origins = validate.origin_size("origins", validate.vectors("origins", origins))
     directions = validate.vectors("directions", directions, rows=origins.shape[0])
     n_cones = origins.shape[0]
-    try:
-        angles = np.asarray(half_angles, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"half_angles must be numbers of radians, got {half_angles!r}") from None
+    angles = validate.real_array("half_angles", half_angles, "numbers of radians")
     if angles.ndim > 1 or (angles.ndim == 1 and angles.shape[0] != n_cones):
         raise ValueError(f"half_angles must be one number or one per cone ({n_cones}), "
                          f"got shape {angles.shape}")

@@ -519,10 +519,7 @@ class OccupancyGrid:
 
         ``factor`` in [0, 1]: 1 keeps everything, 0 forgets everything.
         """
-        try:
-            factor = float(factor)
-        except (TypeError, ValueError):
-            raise ValueError(f"factor must be in [0, 1], got {factor!r}") from None
+        factor = validate.number("factor", factor, "in [0, 1]")
         if not 0.0 <= factor <= 1.0:
             raise ValueError(f"factor must be in [0, 1], got {factor!r}")
         if self._cuda is None:
@@ -682,13 +679,13 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
     """
     _check_occupancy(occupancy)
     grid = occupancy.grid
-    unknown = float(unknown)
+    unknown = validate.number("unknown", unknown, "a probability in [0, 1]")
     if not 0.0 <= unknown <= 1.0:
         raise ValueError(f"unknown must be a probability in [0, 1], got {unknown!r}")
-    min_distance = float(min_distance)
+    min_distance = validate.number("min_distance", min_distance, ">= 0")
     if not (np.isfinite(min_distance) and min_distance >= 0.0):
         raise ValueError(f"min_distance must be >= 0, got {min_distance!r}")
-    free_below = float(free_below)
+    free_below = validate.number("free_below", free_below, "a probability in [0, 1]")
     if not 0.0 <= free_below <= 1.0:
         raise ValueError(f"free_below must be a probability in [0, 1], got {free_below!r}")
     origin = validate.point("origin", origin)

@@ -59,11 +59,8 @@ def intrinsics_of(intrinsics):
         A 3 x 3 camera matrix ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]``
         (OpenCV's), or ``(fx, fy, cx, cy)`` in pixels.
     """
-    try:
-        array = np.asarray(intrinsics, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"intrinsics must be a 3x3 matrix or (fx, fy, cx, cy), "
-                         f"got {intrinsics!r}") from None
+    array = validate.real_array("intrinsics", intrinsics,
+                                "a 3x3 matrix or (fx, fy, cx, cy)")
     if array.shape == (4,):
         fx, fy, cx, cy = array
         skew = 0.0
@@ -113,10 +110,7 @@ def pose_of(pose):
 
 
 def _finite_array(name, value, shape):
-    try:
-        array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be numeric with shape {shape}, got {value!r}") from None
+    array = validate.real_array(name, value, f"numeric with shape {shape}")
     if array.shape != shape:
         raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
     if not np.all(np.isfinite(array)):

@@ -27,11 +27,13 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     Parameters
     ----------
     grid : Grid
-    origins : array_like, shape (m, 3), or (m, 6) with ``directions=None``
+    origins : array_like, shape (m, 3) or (3,), or (m, 6) with ``directions=None``
         Ray origins; or one array of origin + direction per row (as Open3D does).
-    directions : array_like, shape (m, 3), optional
+        One origin, shape (3,) or (1, 3), is every ray's (an eye or a sensor).
+    directions : array_like, shape (m, 3) or (3,), optional
         Ray directions, any non-zero length; they are normalised, so every
-        ``t`` returned is a distance from the origin.
+        ``t`` returned is a distance from the origin. One direction is
+        every ray's (parallel rays from many origins).
     method : {"exact", "bisect", "thibaudeau"}
         ``"exact"`` (default): boundary stepping -- every cell, exact entry and
         exit distances. ``"bisect"``: the paper's Algorithm 1, a baseline that

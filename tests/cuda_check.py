@@ -193,7 +193,8 @@ def gpu_input_cases(seed=9, n=60):
     """{name: (origins, directions, t_max)} for inputs already on the GPU: random
     rays on the log grid as float64 and float32, one combined (m, 6) array, and
     bad rows (NaN, an origin too long to square, a zero direction, a negative
-    t_max) whose errors must read as the CPU's."""
+    t_max) whose errors must read as the CPU's; and one origin or one direction
+    for every ray (given to the GPU as its one row)."""
     rng = np.random.default_rng(seed)
     origins = rng.uniform(-13.0, 13.0, (n, 3))
     directions = rng.normal(size=(n, 3))
@@ -212,6 +213,8 @@ def gpu_input_cases(seed=9, n=60):
     bad["negative t_max"] = (origins, directions, negative)
     return {"float64": (origins, directions, t_max),
             "float32": (origins.astype(np.float32), directions.astype(np.float32), t_max),
+            "one origin": (np.repeat(origins[:1], n, axis=0), directions, t_max),
+            "one direction": (origins, np.repeat(directions[:1], n, axis=0), t_max),
             **{f"bad {what}": case for what, case in bad.items()}}
 
 
@@ -237,11 +240,14 @@ def compare_gpu_inputs(arrays, key):
 
     rays = arrays[f"{key}|rays"]
     dtype = str(arrays[f"{key}|dtype"])
-    origins, directions = (cuda.to_device(np.ascontiguousarray(rays[:, c].astype(dtype)))
-                           for c in (slice(0, 3), slice(3, 6)))
+    shared = {"one origin": 0, "one direction": 3}.get(key.split("gpu inputs ")[-1])
+    origins, directions = (
+        cuda.to_device(np.ascontiguousarray(rays[:1 if first == shared else None,
+                                                 first:first + 3].astype(dtype)))
+        for first in (0, 3))
     calls = [lambda: lt.trace_many(GRIDS["log"](), origins, directions,
                                    t_max=cuda.to_device(rays[:, 6].copy()), device="cuda")]
-    if dtype == "float64" and f"{key}|error" not in arrays:
+    if dtype == "float64" and f"{key}|error" not in arrays and shared is None:
         calls.append(lambda: lt.trace_many(GRIDS["log"](), cuda.to_device(rays[:, :6].copy()),
                                            t_max=rays[:, 6], device="cuda"))
     problems = []

@@ -213,6 +213,13 @@ def test_save_adds_npz_like_numpy_and_says_so(tmp_path):
     assert (os.stat(written).st_mode & 0o777) == 0o666 & ~_umask()
 
 
+def test_a_save_into_a_missing_directory_names_it_not_a_temporary_file(tmp_path):
+    target = tmp_path / "no" / "such" / "map.npz"
+    with pytest.raises(FileNotFoundError, match="no such directory") as error:
+        OccupancyGrid(SMALL).save(target)
+    assert error.value.filename == str(target) and ".part" not in str(error.value)
+
+
 def _umask():
     mask = os.umask(0)
     os.umask(mask)

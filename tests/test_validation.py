@@ -77,7 +77,8 @@ GRID = lt.Grid(0.3, 10.0, 4, 4, 4)
         ([[0, 0, 0], [1, 2, 3]], [[1, 0, 0], [np.inf, 0, 0]], "directions must be finite; row 1"),
         ([[0, 0, 0]], [[0, 0, 0]], r"directions must be non-zero; row 0 is \[0.0, 0.0, 0.0\]"),
         ([[0, 0]], [[1, 0, 0]], r"origins must have shape \(m, 3\) or \(3,\)"),
-        ([[0, 0, 0], [1, 1, 1]], [[1, 0, 0]], "directions has 1 rows but origins has 2"),
+        ([[0, 0, 0], [1, 1, 1]], [[1, 0, 0]] * 3, "directions has 3 rows but origins has 2"),
+        ([[0, 0, 0]], [[1j, 0, 0]], "directions must be real, not complex"),
         (np.zeros((2, 5)), None, r"origins must be one \(m, 6\) array"),
         ([["x", 0, 0]], [[1, 0, 0]], "origins must be numeric"),
     ],
@@ -85,6 +86,62 @@ GRID = lt.Grid(0.3, 10.0, 4, 4, 4)
 def test_bad_rays(origins, directions, match):
     with pytest.raises(ValueError, match=match):
         lt.trace_many(GRID, origins, directions)
+
+
+@pytest.mark.parametrize("rows", [5, "many"])
+def test_one_origin_or_one_direction_serves_every_ray(rows):
+    # numpy's rule for a row of one: the result is that of the repeated rows,
+    # on the serial and the one-pass parallel check (from PARALLEL_CHECK_ROWS).
+    from logsph_trace import _validate
+
+    n = _validate.PARALLEL_CHECK_ROWS + 7 if rows == "many" else rows
+    rng = np.random.default_rng(21)
+    origins = rng.uniform(-4, 4, (n, 3))
+    directions = rng.normal(size=(n, 3))
+    t_max = rng.uniform(0, 20, n)
+    eye, gaze = origins[1], directions[2]
+    for got, want in (
+        (lt.trace_many(GRID, eye, directions, t_max=t_max),
+         lt.trace_many(GRID, np.repeat(eye[None], n, axis=0), directions, t_max=t_max)),
+        (lt.trace_many(GRID, origins, gaze[None]),
+         lt.trace_many(GRID, origins, np.repeat(gaze[None], n, axis=0))),
+    ):
+        assert len(got) == n
+        for name in ("offsets", "cells", "t_enter", "t_exit"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    with pytest.raises(ValueError, match=r"origins must be finite; row 0 is \[nan"):
+        lt.trace_many(GRID, [np.nan, 0, 0], directions)
+    assert len(lt.trace_many(GRID, eye, np.empty((0, 3)))) == 0
+
+
+@pytest.mark.parametrize("call", [
+    lambda: GRID.cell_of([[1 + 1j, 0, 0]]),
+    lambda: lt.trace(GRID, [0, 0, 0], np.array([1, 0, 0], dtype=np.complex64)),
+    lambda: lt.trace_many(GRID, [[0, 0, 0]], [[1, 0, 0]], t_max=[2j]),
+    lambda: lt.trace_cones(GRID, [[0, 0, 0]], [[1, 0, 0]], [0.1 + 0j]),
+    lambda: lt.OccupancyGrid(GRID).integrate(np.array([[1, 1, 1j]]), [0, 0, 0]),
+    lambda: lt.depth_to_points(np.ones((2, 2)), [1 + 0j, 1, 1, 1]),
+])
+def test_complex_input_is_refused_not_cast(call):
+    # numpy casts complex to float with only a warning, dropping the imaginary part.
+    with pytest.raises(ValueError, match="must be real, not complex"):
+        call()
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: lt.Grid(np.complex128(0.3), 10.0, 4, 4, 4), "rho_min must be a finite number"),
+    (lambda: lt.trace_cone(GRID, [0, 0, 0], [1, 0, 0], 0.1 + 0j), "half_angle must be a number"),
+    (lambda: lt.trace_cone(GRID, [0, 0, 0], [1, 0, 0], 0.1, sigma="wide"),
+     "sigma must be a positive number of radians, got 'wide'"),
+    (lambda: lt.OccupancyGrid(GRID).decay(np.complex64(0.5)), r"factor must be in \[0, 1\]"),
+    (lambda: lt.fixation_probability(lt.OccupancyGrid(GRID), [0, 0, 0], [1, 0, 0], 0.05,
+                                     unknown=None), "unknown must be a probability in"),
+    (lambda: lt.fixation_probability(lt.OccupancyGrid(GRID), [0, 0, 0], [1, 0, 0], 0.05,
+                                     min_distance="far"), "min_distance must be >= 0, got 'far'"),
+])
+def test_a_number_that_is_not_one_names_its_argument(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
 
 
 def test_bad_method_and_grid():
