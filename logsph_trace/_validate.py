@@ -138,16 +138,18 @@ def phi_range(low, high, name):
 
 
 def points(name, points):
+    """Coerce to a C-contiguous (M, 3) float64 array of finite points; and whether one was given."""
     array = real_array(name, points)
     single = array.ndim == 1
     if single:
         array = array[None, :]
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"{name} must have shape (M, 3) or (3,), got {np.shape(points)}")
-    if not np.all(np.isfinite(array)):
-        row = int(np.argmax(~np.all(np.isfinite(array), axis=1)))
+    array = np.ascontiguousarray(array)
+    if not _all_finite(array):  # one flat pass, on all threads for large arrays
+        row = int(np.argmin(np.all(np.isfinite(array), axis=1)))
         raise ValueError(NOT_FINITE.format(name=name, row=row, value=array[row].tolist()))
-    return np.ascontiguousarray(array), single
+    return array, single
 
 
 def grid(grid):

@@ -185,6 +185,8 @@ def test_a_large_batch_is_checked_for_finite_values_on_all_threads(bad):
     points[rows - 2, 1] = bad
     with pytest.raises(ValueError, match=f"points must be finite; row {rows - 2} is"):
         lt.OccupancyGrid(GRID_FOR_SCANS).integrate(points, [0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match=f"points must be finite; row {rows - 2} is"):
+        GRID.cell_of(points)
     occupancy = lt.OccupancyGrid(GRID_FOR_SCANS).integrate(points, [0.0, 0.0, 0.0],
                                                           invalid="skip")
     assert occupancy.last_scan.invalid == 1 and occupancy.last_scan.rays == rows - 1
