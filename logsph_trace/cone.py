@@ -374,7 +374,8 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     Parameters
     ----------
     grid : Grid
-    origins, directions : array_like, shape (c, 3)
+    origins, directions : array_like, shape (c, 3) or (3,)
+        One origin (or one direction) is every cone's, as in :func:`trace_many`.
     half_angles : float or array_like, shape (c,)
     n_rays, pattern, weighting, sigma, device :
         As for :func:`trace_cone`, the same for every cone. On the CPU each
@@ -387,8 +388,9 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     """
     validate.grid(grid)
     validate.device(device)
-    origins = validate.origin_size("origins", validate.vectors("origins", origins))
-    directions = validate.vectors("directions", directions, rows=origins.shape[0])
+    origins, directions = validate.shared_rows(validate.vectors("origins", origins),
+                                               validate.vectors("directions", directions))
+    origins = validate.origin_size("origins", origins)
     n_cones = origins.shape[0]
     angles = validate.real_array("half_angles", half_angles, "numbers of radians")
     if angles.ndim > 1 or (angles.ndim == 1 and angles.shape[0] != n_cones):

@@ -114,6 +114,18 @@ def test_one_origin_or_one_direction_serves_every_ray(rows):
     assert len(lt.trace_many(GRID, eye, np.empty((0, 3)))) == 0
 
 
+def test_one_eye_serves_every_cone():
+    eye = [0.3, -0.2, 1.1]
+    gazes = np.random.default_rng(22).normal(size=(4, 3))
+    shared = lt.trace_cones(GRID, eye, gazes, [0.05, 0.1, 0.0, 0.2])
+    for cone, gaze, angle in zip(shared, gazes, [0.05, 0.1, 0.0, 0.2]):
+        alone = lt.trace_cone(GRID, eye, gaze, angle)
+        np.testing.assert_array_equal(cone.cells, alone.cells)
+        np.testing.assert_array_equal(cone.weights, alone.weights)
+    with pytest.raises(ValueError, match="directions has 4 rows but origins has 2"):
+        lt.trace_cones(GRID, [eye, eye], gazes, 0.1)
+
+
 @pytest.mark.parametrize("call", [
     lambda: GRID.cell_of([[1 + 1j, 0, 0]]),
     lambda: lt.trace(GRID, [0, 0, 0], np.array([1, 0, 0], dtype=np.complex64)),
