@@ -68,16 +68,22 @@ def crossings(origin, direction, rho_edges, theta_edges, phi_edges):
     origin, their coefficients are differences of terms of size |o|^2, and a
     line passing h from the centre then had cone crossings off by about
     sqrt(eps) |o|, far more than the cells of size ~h it crosses there.
+
+    The spheres' quadratic keeps ``|d|^2`` as it is: a float64 unit vector's
+    squared length is 1 only to ~1e-16, and taking it as 1 moves a far
+    origin's line by |o|^2 * 1e-16 in the squared distance from the centre,
+    which is larger than rho_min^2 once |o| / rho_min passes ~1e8.
     """
     origin = np.asarray(origin, dtype=np.longdouble)
     direction = np.asarray(direction, dtype=np.longdouble)
     ox, oy, oz = origin
     dx, dy, dz = direction
-    t_c = -(ox * dx + oy * dy + oz * dz)
+    length2 = dx * dx + dy * dy + dz * dz
+    t_c = -(ox * dx + oy * dy + oz * dz) / length2
     px, py, pz = origin + t_c * direction
     ts = []
     for radius in rho_edges:
-        ts += _quadratic_roots(1.0, ox * dx + oy * dy + oz * dz,
+        ts += _quadratic_roots(length2, ox * dx + oy * dy + oz * dz,
                                ox * ox + oy * oy + oz * oz - radius**2)
     for angle in np.asarray(theta_edges, dtype=np.longdouble):
         denom = dx * np.cos(angle) - dz * np.sin(angle)

@@ -97,6 +97,21 @@ def test_near_singular_rays_match_the_oracle_on_every_method(grid, kind):
     _check(grid, kind, offsets, origins, directions, cut, want_cut, "t_max")
 
 
+def test_a_grid_of_eight_decades_matches_the_oracle_from_far_away():
+    """rho from 1e-4 to 1e4: eyes up to 1.3e4 from the centre see cells of 1e-5
+    there. A float64 unit direction's squared length is 1 only to ~1e-16, which
+    moves such a line by more than rho_min^2 in its squared distance from the
+    centre; an oracle that took it as 1 lost the inner spheres."""
+    grid = lt.Grid(1e-4, 1e4, 60, 16, 8)
+    rng = np.random.default_rng(1357)
+    for kind in CLASSES:
+        origins, directions, offsets = singular_rays(rng, grid, kind, 3)
+        want = [oracle_trace(o, d, grid.rho_edges, grid.theta_edges, grid.phi_edges)
+                for o, d in zip(origins, directions)]
+        _check(grid, kind, offsets, origins, directions,
+               lt.trace_many(grid, origins, directions), want, "exact")
+
+
 FACE_RAYS = 150  # 9 grids x 6 families x 150 = 8,100 rays, each traced 3 ways
 
 
