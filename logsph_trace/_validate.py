@@ -53,16 +53,17 @@ def real_array(name, value, requirement="numeric"):
     them. Text, dates and complex numbers are refused: numpy would parse the
     text, or drop the imaginary parts with only a warning.
     """
+    kind = None
     try:
         array = np.asarray(value)
-        if array.dtype.kind == "c":
-            requirement = "real, not complex"
-            raise TypeError
-        if array.dtype.kind not in "biufO":
-            raise TypeError
-        return array.astype(np.float64, copy=False)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be {requirement}, got {value!r}") from None
+        kind = array.dtype.kind
+        if kind in "biufO":
+            return array.astype(np.float64, copy=False)
+    except (TypeError, ValueError):  # ragged rows, objects that are no numbers
+        pass
+    if kind == "c":
+        requirement = "real, not complex"
+    raise ValueError(f"{name} must be {requirement}, got {value!r}")
 
 
 # Bytes a grid holds per edge of an axis: the edges and, for the kernels, up to
@@ -201,15 +202,13 @@ def host_only(device, **values):
                                  "the host first")
 
 
-def _rows_of_three(name, value, rows=None):
+def _rows_of_three(name, value):
     """Coerce to a (m, 3) float64 array (a (3,) vector is one row)."""
     array = real_array(name, value)
     if array.ndim == 1:
         array = array[None, :]
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"{name} must have shape (m, 3) or (3,), got {np.shape(value)}")
-    if rows is not None and array.shape[0] != rows:
-        raise ValueError(f"{name} has {array.shape[0]} rows but origins has {rows}")
     return array
 
 
@@ -226,9 +225,9 @@ def _all_finite(array):
     return bool(np.isfinite(array).all())  # a reduction per row costs 30x more
 
 
-def vectors(name, value, rows=None):
+def vectors(name, value):
     """Coerce to a C-contiguous (m, 3) float64 array; reject NaN and inf."""
-    array = np.ascontiguousarray(_rows_of_three(name, value, rows))
+    array = np.ascontiguousarray(_rows_of_three(name, value))
     if not _all_finite(array):
         row = int(np.argmin(np.all(np.isfinite(array), axis=1)))
         raise ValueError(NOT_FINITE.format(name=name, row=row, value=array[row].tolist()))
@@ -290,24 +289,6 @@ def origin_size(name, origins):
     return origins
 
 
-def _unit_rays(origins, directions):
-    """``rays``' result for a valid batch, in one pass on all threads; else None.
-
-    ``origins``: already a C-contiguous (m, 3) float64 array. None for
-    directions that do not coerce cleanly to the same shape, or for any
-    faulty row: ``rays`` then checks step by step, which names the first
-    fault. The result is the same array for array as that path's.
-    """
-    try:
-        directions = np.ascontiguousarray(real_array("directions", directions))
-    except ValueError:
-        return None
-    if directions.shape != origins.shape:
-        return None
-    units = np.empty(origins.shape)
-    return (origins, units) if _locate.unit_rays(origins, directions, units) else None
-
-
 def _repeat_row(row, n):
     return np.ascontiguousarray(np.broadcast_to(row, (n, row.shape[1])))
 
@@ -344,16 +325,16 @@ def rays(origins, directions):
                 f"got shape {np.shape(origins)}"
             )
         origins, directions = array[:, :3], array[:, 3:]
-    origins, directions = shared_rows(_rows_of_three("origins", origins),
-                                      _rows_of_three("directions", directions))
-    origins = np.ascontiguousarray(origins)
+    origins, directions = (np.ascontiguousarray(array) for array in shared_rows(
+        _rows_of_three("origins", origins), _rows_of_three("directions", directions)))
     if origins.shape[0] >= PARALLEL_CHECK_ROWS:  # below, one thread beats waking the others
-        fast = _unit_rays(origins, directions)
-        if fast is not None:
-            return fast
+        # Every row checked and scaled in one pass; on a fault, the checks in
+        # turn below name the first (the units are the same array for array).
+        units = np.empty(origins.shape)
+        if _locate.unit_rays(origins, directions, units):
+            return origins, units
     origins = origin_size("origins", vectors("origins", origins))
-    directions = vectors("directions", directions, rows=origins.shape[0])
-    return origins, unit_directions(directions)
+    return origins, unit_directions(vectors("directions", directions))
 
 
 def distances(t_max, n_rays):

@@ -234,7 +234,7 @@ def _rays_step_by_step(origins, directions):
     from logsph_trace import _validate
 
     origins = _validate.origin_size("origins", _validate.vectors("origins", origins))
-    directions = _validate.vectors("directions", directions, rows=origins.shape[0])
+    directions = _validate.vectors("directions", directions)
     return origins, _validate.unit_directions(directions)
 
 
