@@ -438,6 +438,26 @@ assert not errors, errors
 print("ok", __import__("numba").threading_layer())
 """
 
+# More threads than CPUs: the ordered chunks' workers wait on each other, and
+# the one waited for may be off its CPU. Fresh output, so the waits for blocks
+# faulted in by another worker come up too (a block is 2**17 rows). Every
+# layer starts this many threads; workqueue is the one every install has.
+_MORE_THREADS_THAN_CPUS = """
+import os, numba, numpy as np, logsph_trace as lt
+threads = numba.config.NUMBA_NUM_THREADS
+assert threads > (os.cpu_count() or 1), threads
+grid = lt.Grid(0.05, 10, 64, 72, 36)
+rng = np.random.default_rng(5)
+o, d = rng.normal(scale=3, size=(30000, 3)), rng.normal(size=(30000, 3))
+want = lt.trace_many(grid, o, d, parallel=False)
+numba.set_num_threads(threads)
+for _ in range(3):
+    got = lt.trace_many(grid, o, d, parallel=True)
+    for name in ("offsets", "cells", "t_enter", "t_exit"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+assert got.cells.shape[0] > 2 ** 18, got.cells.shape
+print("ok", numba.threading_layer(), threads)
+"""
 
 def _run(script, **env):
     import subprocess
@@ -459,6 +479,14 @@ def test_python_threads_may_call_in_parallel_on_the_workqueue_layer():
     result = _run(_THREADS_AT_ONCE, NUMBA_THREADING_LAYER="workqueue")
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.strip() == "ok workqueue"
+
+
+def test_more_threads_than_cpus_give_the_serial_answer():
+    threads = 2 * (os.cpu_count() or 1) + 1
+    result = _run(_MORE_THREADS_THAN_CPUS, NUMBA_THREADING_LAYER="workqueue",
+                  NUMBA_NUM_THREADS=str(threads))
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.split() == ["ok", "workqueue", str(threads)]
 
 
 def test_python_threads_may_call_in_parallel_on_the_default_layer():

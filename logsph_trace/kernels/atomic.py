@@ -21,10 +21,19 @@ The coherent scan's samples, the first ray of each direction bin, are
 found by all threads at once with ``fetch_min`` (the lowest row wins,
 whichever thread gets there first).
 
-With ``NUMBA_DISABLE_JIT=1`` all seven are plain Python.
+A thread that waits for another's store spins on its loads a while, then
+calls ``yield_thread`` between them (``ordered.pause``): the C library's
+``sched_yield``, which hands the CPU to another runnable thread, if any.
+With more threads than CPUs the one being waited for may be among those.
+
+With ``NUMBA_DISABLE_JIT=1`` all eight are plain Python.
 """
 
+import sys
+import time
+
 import numba
+from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
@@ -59,6 +68,10 @@ if numba.config.DISABLE_JIT:
 
     store_ordered = store_relaxed
     load_ordered = load_relaxed
+
+    def yield_thread():
+        """Python stand-in: offer the CPU to another thread."""
+        time.sleep(0)
 
 else:
 
@@ -145,3 +158,20 @@ else:
         """``array[index]`` as one sequentially consistent atomic load (1D integer
         array; no bounds check)."""
         return array.dtype(array, index), _load("seq_cst")
+
+    # The C library's "give my CPU to another runnable thread" (POSIX; Windows
+    # calls it SwitchToThread). Linked by name, so a cached kernel still finds it.
+    _YIELD = "SwitchToThread" if sys.platform == "win32" else "sched_yield"
+
+    @intrinsic
+    def yield_thread(typingctx):
+        """Offer this thread's CPU to another runnable thread (``sched_yield``);
+        returns at once when none is waiting for it."""
+
+        def codegen(context, builder, signature, args):
+            function = cgutils.get_or_insert_function(
+                builder.module, ir.FunctionType(ir.IntType(32), []), _YIELD)
+            builder.call(function, [])
+            return context.get_dummy_value()
+
+        return types.void(), codegen
