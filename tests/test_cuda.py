@@ -6,7 +6,9 @@ per-ray code runs as Python inside the simulated kernels). On a machine with
 a GPU the same checks run on the device; without one that test skips.
 """
 
+import importlib.util
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -102,6 +104,28 @@ def test_gpu_traces_equal_the_cpu_on_a_real_device():
                         **cpu_maps(map_cases(n_points=5000)),
                         **cpu_gpu_inputs(gpu_input_cases())})
     assert not problems, problems
+
+
+@pytest.mark.skipif(importlib.util.find_spec("numba_cuda") is None,
+                    reason="needs numba-cuda (the cuda extra; .ci/run installs it for this test)")
+def test_every_gpu_kernel_compiles_and_assembles_for_the_device(tmp_path):
+    # The simulator runs the per-ray code as Python; this compiles it. Every
+    # kernel, with the argument types the entry points launch it with (found
+    # under the simulator), goes through numba-cuda to PTX for an H100 and
+    # through ptxas to machine code. No GPU is needed.
+    path = str(tmp_path / "signatures.pkl")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), str(REPO)]))
+    for name in ("NUMBA_ENABLE_CUDASIM", "NUMBA_DISABLE_JIT"):
+        env.pop(name, None)
+    script = str(TESTS / "cuda_compile.py")
+    recorded = subprocess.run([sys.executable, script, "record", path], capture_output=True,
+                              text=True, cwd=tmp_path, timeout=600,
+                              env=dict(env, NUMBA_ENABLE_CUDASIM="1", NUMBA_DISABLE_JIT="1"))
+    assert recorded.returncode == 0, recorded.stdout + recorded.stderr
+    compiled = subprocess.run([sys.executable, script, "compile", path], capture_output=True,
+                              text=True, cwd=tmp_path, timeout=600, env=env)
+    assert compiled.returncode == 0, compiled.stdout + compiled.stderr
+    assert re.search(r"compiled (\d+) of \1$", compiled.stdout.strip()), compiled.stdout
 
 
 def test_import_and_the_cpu_path_need_no_numba_cuda():
