@@ -29,10 +29,12 @@ With more threads than CPUs the one being waited for may be among those.
 With ``NUMBA_DISABLE_JIT=1`` all eight are plain Python.
 """
 
+import ctypes
 import sys
 import time
 
 import numba
+from llvmlite import binding as llvm
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
@@ -160,8 +162,13 @@ else:
         return array.dtype(array, index), _load("seq_cst")
 
     # The C library's "give my CPU to another runnable thread" (POSIX; Windows
-    # calls it SwitchToThread). Linked by name, so a cached kernel still finds it.
+    # calls it SwitchToThread). Linked by name, so a cached kernel still finds
+    # it; the name is given its address here for LLVM's linker, which looks up
+    # only some platforms' C library by itself.
     _YIELD = "SwitchToThread" if sys.platform == "win32" else "sched_yield"
+    if not llvm.address_of_symbol(_YIELD):
+        _library = ctypes.WinDLL("kernel32") if sys.platform == "win32" else ctypes.CDLL(None)
+        llvm.add_symbol(_YIELD, ctypes.cast(getattr(_library, _YIELD), ctypes.c_void_p).value)
 
     @intrinsic
     def yield_thread(typingctx):
