@@ -246,9 +246,10 @@ class OccupancyGrid:
         validate.grid(grid)
         self._device = validate.device(device)
         self._cuda = cuda_backend() if device == "cuda" else None
-        # log_odds, and in integrate a byte per cell per thread
+        # log_odds and labels (4 bytes a cell each), and in integrate a byte per
+        # cell per thread
         validate.fits("grid", int(np.prod(grid.shape, dtype=np.float64))
-                      * (4 + numba.get_num_threads()), f"an occupancy map of {grid.shape} cells")
+                      * (8 + numba.get_num_threads()), f"an occupancy map of {grid.shape} cells")
         self._grid = grid
         self._last_scan = None
         self._labels = np.zeros(grid.shape, dtype=np.int32)
