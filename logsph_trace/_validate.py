@@ -38,12 +38,12 @@ def number(name, value, requirement):
 
     Text, None and complex numbers are refused, each with the argument's name.
     """
-    try:
-        if _is_complex(value):
-            raise TypeError
-        return float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be {requirement}, got {value!r}") from None
+    if not _is_complex(value):
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            pass
+    raise ValueError(f"{name} must be {requirement}, got {value!r}")
 
 
 def real_array(name, value, requirement="numeric"):
