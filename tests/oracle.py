@@ -63,11 +63,11 @@ def _quadratic_roots(a, half_b, c):
 def crossings(origin, direction, rho_edges, theta_edges, phi_edges):
     """Every t > 0 where the ray meets a boundary surface (plus a few harmless extras).
 
-    The plane and cone equations are solved for ``u = t - t_c`` about the
-    line's closest point to the centre, ``p = o + t_c d``: written about the
-    origin, their coefficients are differences of terms of size |o|^2, and a
-    line passing h from the centre then had cone crossings off by about
-    sqrt(eps) |o|, far more than the cells of size ~h it crosses there.
+    Every equation is solved for ``u = t - t_c`` about the line's closest
+    point to the centre, ``p = o + t_c d``: written about the origin, their
+    coefficients are differences of terms of size |o|^2, and a line passing
+    h from the centre then had cone crossings off by about sqrt(eps) |o|,
+    far more than the cells of size ~h it crosses there.
 
     The spheres' quadratic keeps ``|d|^2`` as it is: a float64 unit vector's
     squared length is 1 only to ~1e-16, and taking it as 1 moves a far
@@ -82,9 +82,13 @@ def crossings(origin, direction, rho_edges, theta_edges, phi_edges):
     t_c = -(ox * dx + oy * dy + oz * dz) / length2
     px, py, pz = origin + t_c * direction
     ts = []
-    for radius in rho_edges:
-        ts += _quadratic_roots(length2, ox * dx + oy * dy + oz * dz,
-                               ox * ox + oy * oy + oz * oz - radius**2)
+    # About p, whose distance from the centre is its own: written about the
+    # origin, |o|^2 - R^2 is rounded by |o|^2 times longdouble's eps, 3e-4
+    # for |o| = 5e7, and a crossing near a tangency moved by its square root.
+    p_dot_d = px * dx + py * dy + pz * dz  # about 0
+    p2 = px * px + py * py + pz * pz
+    for radius in np.asarray(rho_edges, dtype=np.longdouble):
+        ts += [t_c + u for u in _quadratic_roots(length2, p_dot_d, p2 - radius * radius)]
     for angle in np.asarray(theta_edges, dtype=np.longdouble):
         denom = dx * np.cos(angle) - dz * np.sin(angle)
         if denom != 0.0:
@@ -110,11 +114,18 @@ def crossings(origin, direction, rho_edges, theta_edges, phi_edges):
     return np.unique(np.concatenate([np.zeros(1, dtype=np.longdouble), ts]))
 
 
-def oracle_trace(origin, direction, rho_edges, theta_edges, phi_edges):
-    """Reference segments: (cells (n, 3) int, t_enter (n,), t_exit (n,)) for a unit direction."""
+def oracle_trace(origin, direction, rho_edges, theta_edges, phi_edges, normalise=True):
+    """Reference segments: (cells (n, 3) int, t_enter (n,), t_exit (n,)) for a unit direction.
+
+    ``normalise=False`` takes ``direction`` as the unit vector it is (the
+    package's own, ``_validate.rays``): numpy's norm may differ from the
+    package's by an ulp, which turns the line by ``eps`` and moves it by
+    ``eps |o|`` near the centre, more than a far origin's tolerance.
+    """
     origin = np.asarray(origin, dtype=np.float64)
     direction = np.asarray(direction, dtype=np.float64)
-    direction = direction / np.linalg.norm(direction)  # the package's line, in float64
+    if normalise:
+        direction = direction / np.linalg.norm(direction)  # the package's line, in float64
     breaks = crossings(origin, direction, rho_edges, theta_edges, phi_edges)
     # Beyond the last break the ray only moves away from rho_max: outside for good.
     starts, ends = breaks[:-1], breaks[1:]
