@@ -43,14 +43,15 @@ ABSORBED = 1e-12
 
 
 def test_far_origins_match_oracle(grid):
-    # |o| from 10 to 1e8 rho_max (24 rays a decade), aimed at random points
-    # of the ball and at points near the centre, from 3 rho_min (or 1% of
-    # rho_max) down to 1,000 absorbed slivers: closer, the cells about the
-    # centre are crossed for about a sliver, which one side absorbs into its
-    # neighbour (making it longer than the cut) and the other drops (lines
-    # through the centre: test_singular.py). The oracle is given the
-    # package's unit vector; so given, it agreed with a 60-digit reference on
-    # 1,800 rays up to 1e10 rho_max (bench/results/far_origins.md).
+    # exact, thibaudeau and a t_max cut, from |o| of 10 to 1e8 rho_max (24
+    # rays a decade), aimed at random points of the ball and at points near
+    # the centre, from 3 rho_min (or 1% of rho_max) down to 1,000 absorbed
+    # slivers: closer, the cells about the centre are crossed for about a
+    # sliver, which one side absorbs into its neighbour (making it longer
+    # than the cut) and the other drops (lines through the centre:
+    # test_singular.py). The oracle is given the package's unit vector; so
+    # given, it agreed with a 60-digit reference on 1,800 rays up to 1e10
+    # rho_max (bench/results/far_origins.md).
     rng = np.random.default_rng(20261125)
     per_decade = 24
     near = grid.rho_min if grid.rho_min > 0.0 else 0.01 * grid.rho_max
@@ -65,15 +66,28 @@ def test_far_origins_match_oracle(grid):
                          grid.rho_max * rng.random(per_decade) ** (1 / 3),
                          10.0 ** rng.uniform(closest, np.maximum(closest, np.log10(3.0 * near))))
         directions = aims * reach[:, None] - origins
-        traces = lt.trace_many(grid, origins, directions)
         _, units = _validate.rays(origins, directions)  # the line traced, for the oracle too
+        # A cut within rho_max of the closest approach, mostly inside the region.
+        t_max = -np.sum(origins * units, axis=1) + grid.rho_max * rng.uniform(-1.3, 1.3, per_decade)
+        runs = {
+            "exact": lt.trace_many(grid, origins, directions),
+            "thibaudeau": lt.trace_many(grid, origins, directions, method="thibaudeau"),
+            "t_max": lt.trace_many(grid, origins, directions, t_max=t_max),
+        }
         for row in range(per_decade):
             want = oracle_trace(origins[row], units[row], grid.rho_edges, grid.theta_edges,
                                 grid.phi_edges, normalise=False)
-            got = (traces[row].cells, traces[row].t_enter, traces[row].t_exit)
             scale = max(grid.rho_max, 1.25 * ABSORBED * (grid.rho_max + distance[row]) / 1e-9)
-            message = compare(got, want, scale)
-            assert message is None, f"origin={origins[row]} direction={directions[row]}: {message}"
+            for label, traces in runs.items():
+                reference = want
+                if label == "t_max":
+                    keep = want[1] < t_max[row]
+                    reference = (want[0][keep], want[1][keep],
+                                 np.minimum(want[2][keep], t_max[row]))
+                got = (traces[row].cells, traces[row].t_enter, traces[row].t_exit)
+                message = compare(got, reference, scale)
+                assert message is None, (f"{label} origin={origins[row]} "
+                                         f"direction={directions[row]}: {message}")
 
 
 def test_segments_are_ordered_contiguous_and_inside(grid):
