@@ -46,9 +46,16 @@ def _all_equal_on_the_simulator(tmp_path, **arrays):
     assert result.stdout.strip() == "all equal"
 
 
+def _python_path():
+    """The tests and the repository first, then the caller's own PYTHONPATH (a
+    machine may bring its packages that way, a numpy that numba-cuda takes)."""
+    return os.pathsep.join([str(TESTS), str(REPO)]
+                           + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])
+
+
 def _simulated(args, tmp_path):
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", NUMBA_DISABLE_JIT="1",
-               PYTHONPATH=os.pathsep.join([str(TESTS), str(REPO)]))
+               PYTHONPATH=_python_path())
     return subprocess.run([sys.executable, str(TESTS / "cuda_check.py"), *args],
                           capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600)
 
@@ -114,7 +121,7 @@ def test_every_gpu_kernel_compiles_and_assembles_for_the_device(tmp_path):
     # under the simulator), goes through numba-cuda to PTX for an H100 and
     # through ptxas to machine code. No GPU is needed.
     path = str(tmp_path / "signatures.pkl")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), str(REPO)]))
+    env = dict(os.environ, PYTHONPATH=_python_path())
     for name in ("NUMBA_ENABLE_CUDASIM", "NUMBA_DISABLE_JIT"):
         env.pop(name, None)
     script = str(TESTS / "cuda_compile.py")

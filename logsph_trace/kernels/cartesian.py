@@ -31,7 +31,7 @@ def _slab(origin, direction, low, high):
 @jit
 def _axis_start(origin, direction, t_start, low, size, n):
     """Voxel index at t_start, step sign, t of the next boundary, t between boundaries."""
-    index = int(np.floor((origin + t_start * direction - low) / size))
+    index = int(math.floor((origin + t_start * direction - low) / size))
     index = min(max(index, 0), n - 1)
     if direction > 0.0:
         return index, 1, (low + (index + 1) * size - origin) / direction, size / direction
