@@ -147,9 +147,7 @@ def points(name, points):
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"{name} must have shape (M, 3) or (3,), got {np.shape(points)}")
     array = np.ascontiguousarray(array)
-    if not _all_finite(array):  # one flat pass, on all threads for large arrays
-        row = int(np.argmin(np.all(np.isfinite(array), axis=1)))
-        raise ValueError(NOT_FINITE.format(name=name, row=row, value=array[row].tolist()))
+    _require_finite(name, array)
     return array, single
 
 
@@ -225,12 +223,20 @@ def _all_finite(array):
     return bool(np.isfinite(array).all())  # a reduction per row costs 30x more
 
 
-def vectors(name, value):
-    """Coerce to a C-contiguous (m, 3) float64 array; reject NaN and inf."""
-    array = np.ascontiguousarray(_rows_of_three(name, value))
+def _require_finite(name, array):
+    """Raise ValueError naming the first row with NaN or inf (one flat pass).
+
+    ``array``: C-contiguous (m, 3) float64.
+    """
     if not _all_finite(array):
         row = int(np.argmin(np.all(np.isfinite(array), axis=1)))
         raise ValueError(NOT_FINITE.format(name=name, row=row, value=array[row].tolist()))
+
+
+def vectors(name, value):
+    """Coerce to a C-contiguous (m, 3) float64 array; reject NaN and inf."""
+    array = np.ascontiguousarray(_rows_of_three(name, value))
+    _require_finite(name, array)
     return array
 
 
