@@ -148,6 +148,14 @@ def oracle_trace(origin, direction, rho_edges, theta_edges, phi_edges, normalise
     return (np.array(out_cells, dtype=np.int64).reshape(-1, 3), np.array(out_t0), np.array(out_t1))
 
 
+def cut_at(trace, t_max):
+    """A reference trace (cells, t_enter, t_exit) cut at distance ``t_max``, as
+    ``trace_many(..., t_max=...)`` cuts it."""
+    cells, t_enter, t_exit = trace
+    keep = t_enter < t_max
+    return cells[keep], t_enter[keep], np.minimum(t_exit[keep], t_max)
+
+
 def normalise(cells, t_enter, t_exit, tol):
     """Drop segments shorter than ``tol`` and re-merge neighbours of the same cell.
 

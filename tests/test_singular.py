@@ -21,7 +21,7 @@ import pytest
 from conftest import GRIDS
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from oracle import UNRESOLVED_TANGENT, compare, oracle_trace, within_faces
+from oracle import UNRESOLVED_TANGENT, compare, cut_at, oracle_trace, within_faces
 from singular import (
     CLASSES,
     FACE_FAMILIES,
@@ -45,12 +45,6 @@ def _tolerance(grid, kind, offset, origin):
     if kind in TANGENTS and offset < 1e-12:
         return grid.rho_max + float(np.linalg.norm(origin)), UNRESOLVED_TANGENT
     return grid.rho_max, 1e-9
-
-
-def _cut(trace, t_max):
-    cells, t_enter, t_exit = trace
-    keep = t_enter < t_max
-    return cells[keep], t_enter[keep], np.minimum(t_exit[keep], t_max)
 
 
 def _agrees(got, want, scale, rel):
@@ -93,7 +87,7 @@ def test_near_singular_rays_match_the_oracle_on_every_method(grid, kind):
     # t_max anywhere along the ray, near the singular point included.
     t_max = rng.uniform(0.0, 2.5 * grid.rho_max, len(origins))
     cut = lt.trace_many(grid, origins, directions, t_max=t_max)
-    want_cut = [_cut(w, t) for w, t in zip(want, t_max)]
+    want_cut = [cut_at(w, t) for w, t in zip(want, t_max)]
     _check(grid, kind, offsets, origins, directions, cut, want_cut, "t_max")
 
 
