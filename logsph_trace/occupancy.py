@@ -163,8 +163,8 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view):
     masks = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint64)
     _kernels.near_masks(free, words, grid.n_rho, skip, view, masks)
     limit = np.empty(n_bins, dtype=np.uint8)
-    _kernels.mark_candidates(origin, args, masks, skip, per_side, rays, view,
-                             np.empty((free.shape[0], n_bins), dtype=np.uint8), limit)
+    _kernels.mark_candidates(origin, args, masks, skip, per_side, rays, view, limit,
+                             free.shape[0])
     started, ended, straight = _kernels.mark_scan(origin, points, max_range, args, free, hits,
                                                   _kernels.WALK_OTHERS, coarse_bins, first, bins,
                                                   limit, skip)
@@ -391,14 +391,15 @@ class OccupancyGrid:
                                         labels is not None)
         elif at_centre:  # hits are map indices
             hits = np.empty(points.shape[0], dtype=np.int64)
-            with _zeroed_scratch("extents", (threads, grid.n_theta * grid.n_phi),
+            with _zeroed_scratch("extents", (grid.n_theta * grid.n_phi,),
                                  np.int64) as free_extent, \
                     _zeroed_scratch("hit_mask", (n_cells,), np.uint8) as hit_mask:
                 start = lap("prepare", start)
-                _kernels.mark_radial(points, max_range, grid.kernel_args(), free_extent, hits)
+                _kernels.mark_radial(points, max_range, grid.kernel_args(), free_extent, hits,
+                                     threads)
                 start = lap("mark", start)
                 _kernels.apply_radial(log_odds, free_extent, hits, hit_mask,
-                                      grid.n_theta, grid.n_phi, *update)
+                                      grid.n_theta, grid.n_phi, *update, threads)
                 lap("apply", start)
         else:
             # Each ray's direction, length and hit are set up in the kernels, in

@@ -294,6 +294,41 @@ def test_a_cells_shadow_holds_every_direction_meeting_it(grid, sensor):
         assert (limit == 200).all() or tight[3] > 1.0
 
 
+@pytest.mark.parametrize("scan", [0, 1, 2])
+def test_the_bins_limits_are_the_same_on_any_number_of_threads(scan, monkeypatch,
+                                                              coherent_from_1000_rays):
+    # All workers lower one shared limit per bin (an atomic minimum): 1 and 2
+    # threads, 1 to 7 workers, the same limits as one worker alone.
+    grid, sensor, forward, focal = SCANS[scan]
+    points = _camera_scan(np.random.default_rng(71), np.asarray(sensor), forward, focal=focal)
+    calls = []
+    mark_candidates = kernels.mark_candidates
+
+    def recording(*args):
+        mark_candidates(*args)
+        calls.append(tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args))
+
+    monkeypatch.setattr(occ._kernels, "mark_candidates", recording)
+    _flags(grid, sensor, points)
+    monkeypatch.undo()
+    (origin, args, masks, skip, q, rays, view, limit, _), = calls
+    want = limit.copy()
+    assert 0 < np.count_nonzero(want < skip) < want.size
+    limit[:] = 0  # every bin set again
+    kernels.mark_candidates(origin, grid.kernel_args(), masks, skip, q, rays, view, limit, 1)
+    np.testing.assert_array_equal(limit, want)
+    for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+        numba.set_num_threads(threads)
+        try:
+            for workers in (1, 2, 7):
+                limit[:] = 0
+                kernels.mark_candidates(origin, grid.kernel_args(), masks, skip, q, rays, view,
+                                        limit, workers)
+                np.testing.assert_array_equal(limit, want)
+        finally:
+            numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+
+
 def _bin_cone(bins, q, workers=None):
     """``kernels.ray_cone`` of a list of cube-map bins (one worker per thread by default)."""
     first = np.ones(6 * q * q, dtype=np.int64)  # 1 row, in none of the bins

@@ -19,14 +19,18 @@ store.
 
 The coherent scan's samples, the first ray of each direction bin, are
 found by all threads at once with ``fetch_min`` (the lowest row wins,
-whichever thread gets there first).
+whichever thread gets there first); so are its bins' limits. The radial
+scan's free extent of each column is raised with ``fetch_max``. A minimum
+or a maximum does not depend on the order the threads come in, so one
+shared array gives the same result on any number of threads, where a row
+per thread would have to be read, all rows, by whatever merges them.
 
 A thread that waits for another's store spins on its loads a while, then
 calls ``yield_thread`` between them (``ordered.pause``): the C library's
 ``sched_yield``, which hands the CPU to another runnable thread, if any.
 With more threads than CPUs the one being waited for may be among those.
 
-With ``NUMBA_DISABLE_JIT=1`` all eight are plain Python.
+With ``NUMBA_DISABLE_JIT=1`` all nine are plain Python.
 """
 
 import ctypes
@@ -68,6 +72,12 @@ if numba.config.DISABLE_JIT:
         array[index] = min(old, value)
         return old
 
+    def fetch_max(array, index, value):
+        """Python stand-in: raise ``array[index]`` to ``value`` if below; return what it held."""
+        old = array[index]
+        array[index] = max(old, value)
+        return old
+
     store_ordered = store_relaxed
     load_ordered = load_relaxed
 
@@ -107,13 +117,19 @@ else:
         return codegen
 
     def _read_modify_write(operation, ordering):
-        """Code for an atomic ``operation`` on ``array[index]`` returning the old value."""
+        """Code for an atomic ``operation`` on ``array[index]`` returning the old value.
+
+        ``min`` and ``max`` compare as the array's integers do: unsigned
+        (``umin``, ``umax``) for an unsigned dtype.
+        """
 
         def codegen(context, builder, signature, args):
             array_type, _, value_type = signature.args
+            unsigned = getattr(array_type.dtype, "signed", True) is False
+            op = "u" + operation if unsigned and operation in ("min", "max") else operation
             pointer = _element_pointer(context, builder, array_type, args[0], args[1])
             item = context.cast(builder, args[2], value_type, array_type.dtype)
-            return builder.atomic_rmw(operation, pointer, item, ordering)
+            return builder.atomic_rmw(op, pointer, item, ordering)
 
         return codegen
 
@@ -144,10 +160,18 @@ else:
     @intrinsic
     def fetch_min(typingctx, array, index, value):
         """Lower ``array[index]`` to ``value`` if above, atomically, unordered, and
-        return what it held (a signed ``atomicrmw min``: a locked compare-exchange
-        loop on x86, so worth a relaxed load first; 1D signed integer array; no
-        bounds check)."""
+        return what it held (``atomicrmw min``, or ``umin`` for an unsigned
+        array: a locked compare-exchange loop on x86, so worth a relaxed load
+        first; 1D integer array; no bounds check)."""
         return array.dtype(array, index, value), _read_modify_write("min", "monotonic")
+
+    @intrinsic
+    def fetch_max(typingctx, array, index, value):
+        """Raise ``array[index]`` to ``value`` if below, atomically, unordered, and
+        return what it held (``atomicrmw max``, or ``umax`` for an unsigned
+        array; worth a relaxed load first, as ``fetch_min``; 1D integer array;
+        no bounds check)."""
+        return array.dtype(array, index, value), _read_modify_write("max", "monotonic")
 
     @intrinsic
     def store_ordered(typingctx, array, index, value):

@@ -11,7 +11,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .atomic import exchange, fetch_min, load_relaxed, store_relaxed
+from .atomic import exchange, fetch_max, fetch_min, load_relaxed, store_relaxed
 from .exact import (
     PHI,
     THETA,
@@ -963,12 +963,14 @@ def _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit):
         for bu in range(u_from, u_to + 1):
             for bv in range(v_from, v_to + 1):
                 index = (face * q + bu) * q + bv
-                if limit[index] > i:
-                    limit[index] = i
+                # Shared by all threads: a relaxed load first, the locked
+                # minimum only where it lowers.
+                if load_relaxed(limit, index) > i:
+                    fetch_min(limit, index, i)
 
 
 @jit(parallel=True)
-def mark_candidates(origin, grid, masks, skip, q, rays, view, limits, limit):
+def mark_candidates(origin, grid, masks, skip, q, rays, view, limit, workers):
     """Set ``limit[bin]`` to the lowest shell below ``skip`` of a cell that a
     walked ray with a direction in that bin might flag while the sampled rays
     (``masks``) did not (``skip`` where there is none).
@@ -980,9 +982,10 @@ def mark_candidates(origin, grid, masks, skip, q, rays, view, limits, limit):
     full), so neighbours are taken in the 3 x 3 x 3 block around a cell, and
     every column of a polar row neighbours the others. ``rays``: a cone (axis
     x, y, z and half-angle) holding every ray's direction; columns not in
-    ``view`` (``columns_in_view``) are passed over; blocks of columns are
-    taken in turn (``in_turn``). ``limits``: (workers, bins) uint8 scratch,
-    one row per worker (a worker per thread).
+    ``view`` (``columns_in_view``) are passed over; the ``workers`` (one per
+    thread) take blocks of columns in turn (``in_turn``) and lower the one
+    ``limit`` together (``atomic.fetch_min``: a minimum, the same on any
+    number of threads).
     """
     n_theta = grid.theta_edges.shape[0] - 1
     n_phi = grid.phi_edges.shape[0] - 1
@@ -992,30 +995,21 @@ def mark_candidates(origin, grid, masks, skip, q, rays, view, limits, limit):
     for j in range(n_theta):
         pole_low |= masks[j * n_phi]
         pole_high |= masks[j * n_phi + n_phi - 1]
-    threads = limits.shape[0]
     n_bins = limit.shape[0]
     for block in prange((n_bins + BLOCK - 1) // BLOCK):
-        for thread in range(threads):
-            limits[thread, block * BLOCK:min(n_bins, (block + 1) * BLOCK)] = skip
+        limit[block * BLOCK:min(n_bins, (block + 1) * BLOCK)] = skip
     n_columns = n_theta * n_phi
-    step, n_blocks, counter = in_turn(n_columns, threads, BLOCK)
-    for worker in prange(threads):
+    step, n_blocks, counter = in_turn(n_columns, workers, BLOCK)
+    for worker in prange(workers):
         corners = np.empty((3, MAX_CORNERS), dtype=np.float64)
-        row = limits[worker]
         block = take(counter, n_blocks)
         while block >= 0:
             for column in range(block * step, min(n_columns, (block + 1) * step)):
                 if view[column]:
                     _mark_column_candidates(origin[0], origin[1], origin[2], grid, masks, skip,
                                             q, column // n_phi, column % n_phi, below, pole_low,
-                                            pole_high, rays, corners, row)
+                                            pole_high, rays, corners, limit)
             block = take(counter, n_blocks)
-    for block in prange((n_bins + BLOCK - 1) // BLOCK):
-        for b in range(block * BLOCK, min(n_bins, (block + 1) * BLOCK)):
-            lowest = limits[0, b]
-            for thread in range(1, threads):
-                lowest = min(lowest, limits[thread, b])
-            limit[b] = lowest
 
 
 @jit(inline="always")
@@ -1184,8 +1178,16 @@ def radial_ray(points, row, max_range, grid, per_log, guesses):
     return j * n_phi + k, free, (shell * n_theta + j) * n_phi + k if hit else -1
 
 
+@jit(inline="always")
+def raise_to(array, index, value):
+    """``array[index] = max(array[index], value)`` from any thread: a relaxed
+    load first, the locked ``fetch_max`` only when it raises."""
+    if value > load_relaxed(array, index):
+        fetch_max(array, index, value)
+
+
 @jit(parallel=True)
-def mark_radial(points, max_range, grid, free_extent, hits):
+def mark_radial(points, max_range, grid, free_extent, hits, workers):
     """The sensor at the grid's origin: every ray is radial, so its cells are one
     (theta, phi) column, free up to the shell holding its end point.
 
@@ -1195,18 +1197,19 @@ def mark_radial(points, max_range, grid, free_extent, hits):
     the exact trace's ``snap`` before its (cut) length is a
     sliver, neither free nor hit; a ray ending exactly on a sphere ends in
     the cell below it, as the trace (whose crossing time ``sqrt(rho^2)`` is
-    ``rho`` itself) stops before crossing. ``free_extent`` (workers, n_theta
-    * n_phi) int64 records, per worker and column, how many shells from the
-    centre are free (a worker per thread, taking blocks of rays in turn:
-    ``in_turn``); ``hits[row]`` gets the map index of ray ``row``'s hit
-    cell, or -1. Three lookups per ray instead of a traversal
+    ``rho`` itself) stops before crossing. ``free_extent`` (n_theta *
+    n_phi,) int64 gets, per column, how many shells from the centre are
+    free: raised by all threads (``raise_to``; a maximum, so the same on any
+    number of them), once per run of rays in one column, since neighbouring
+    pixels mostly share it. ``workers`` (a worker per thread) take blocks of
+    rays in turn (``in_turn``); ``hits[row]`` gets the map index of ray
+    ``row``'s hit cell, or -1. Three lookups per ray instead of a traversal
     (``radial_ray``).
     """
     n_rays = points.shape[0]
     rho_edges, rho_kind = grid.rho_edges, grid.rho_kind
     # Log shells' constant logarithm, taken once (it was a third of a ray's time).
     per_log = per_log_of(rho_edges, rho_kind)
-    workers = free_extent.shape[0]
     # Up to 2,048 rays a block: on few threads, longer runs of neighbouring
     # rays (blocks of 256 made the table scan 2-4% slower on 2 threads).
     step, n_blocks, counter = in_turn(n_rays, workers, 8 * BLOCK)
@@ -1214,25 +1217,34 @@ def mark_radial(points, max_range, grid, free_extent, hits):
         block = take(counter, n_blocks)
         while block >= 0:
             guesses = np.full(3, -1, dtype=np.int64)
+            run_column = -1  # the run's column (-1: none) and its largest extent
+            run_free = 0
             for row in range(block * step, min(n_rays, (block + 1) * step)):
                 column, free, hits[row] = radial_ray(points, row, max_range, grid, per_log,
                                                      guesses)
-                if column >= 0 and free > free_extent[worker, column]:
-                    free_extent[worker, column] = free
+                if column != run_column:
+                    if run_column >= 0:
+                        raise_to(free_extent, run_column, run_free)
+                    run_column = column
+                    run_free = free
+                elif free > run_free:
+                    run_free = free
+            if run_column >= 0:
+                raise_to(free_extent, run_column, run_free)
             block = take(counter, n_blocks)
 
 
 @jit(parallel=True)
 def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit, log_miss,
-                  log_min, log_max):
-    """``apply_scan`` for the radial case: cell (i, j, k) is free if i is below a
-    thread's free extent of its column; ``hit_mask`` (n_cells,) uint8, zero,
-    marks the hit cells so a hit wins and each is updated once. Only the
-    columns' free runs and the hits are visited, not the whole map.
+                  log_min, log_max, workers):
+    """``apply_scan`` for the radial case: cell (i, j, k) is free if i is below its
+    column's free extent (``mark_radial``); ``hit_mask`` (n_cells,) uint8,
+    zero, marks the hit cells so a hit wins and each is updated once. Only
+    the columns' free runs and the hits are visited, not the whole map.
 
     All three passes run on all threads; the columns, whose free runs lie
-    together where the scan looks, in blocks taken in turn (``in_turn``).
-    Rays that end in one cell store the same mark
+    together where the scan looks, in blocks that the ``workers`` take in
+    turn (``in_turn``). Rays that end in one cell store the same mark
     (``atomic.store_relaxed``); in the last pass exactly one of them takes it
     back (``atomic.exchange``) and updates the cell, so the map does not
     depend on the thread count. ``free_extent`` and ``hit_mask`` are left
@@ -1245,19 +1257,15 @@ def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit,
         for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             if 0 <= hits[ray] < n_cells:  # -1: no hit (the bound: no store outside the map)
                 store_relaxed(hit_mask, hits[ray], 1)
-    threads = free_extent.shape[0]
     n_columns = n_theta * n_phi
-    step, n_column_blocks, counter = in_turn(n_columns, threads, BLOCK)
-    for worker in prange(threads):  # the columns in view lie together: blocks in turn
+    step, n_column_blocks, counter = in_turn(n_columns, workers, BLOCK)
+    for worker in prange(workers):  # the columns in view lie together: blocks in turn
         column_block = take(counter, n_column_blocks)
         while column_block >= 0:
             for column in range(column_block * step, min(n_columns, (column_block + 1) * step)):
-                extent = free_extent[0, column]
-                for thread in range(1, threads):
-                    extent = max(extent, free_extent[thread, column])
+                extent = free_extent[column]
                 if extent > 0:
-                    for thread in range(threads):
-                        free_extent[thread, column] = 0
+                    free_extent[column] = 0
                 for shell in range(extent):
                     cell = shell * n_columns + column
                     if hit_mask[cell] == 0:
