@@ -65,6 +65,12 @@ def test_kernels_run_without_jit(tmp_path):
     plain = np.load(out)
     jitted_out = tmp_path / "jit.npz"
     env.pop("NUMBA_DISABLE_JIT")
+    # Not cached: the script sets ordered.TOUCH_ROWS, which Numba freezes into
+    # the kernels it compiles; cached, they would serve later processes (a
+    # trace_ordered faulting its output in by 5 rows). Before the block size
+    # was kept per call (ordered.chain), a kernel cached so made later
+    # processes that compiled the ordered path wait forever.
+    env["LOGSPH_TRACE_CACHE"] = "0"
     subprocess.run([sys.executable, "-c", SCRIPT, str(jitted_out)], env=env, check=True,
                    timeout=300)
     jitted = np.load(jitted_out)

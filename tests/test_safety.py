@@ -538,3 +538,35 @@ def test_the_ordered_chunks_scratch_is_kept_between_calls(monkeypatch):
     for got in (first, second, other[0][0]):
         np.testing.assert_array_equal(got.cells, want.cells)
         np.testing.assert_array_equal(got.t_exit, want.t_exit)
+
+
+def test_the_fault_in_blocks_are_sized_by_the_call_not_by_a_frozen_constant():
+    # The ordered path's helpers that fault in output by blocks (touched,
+    # touch_ahead) are cached each on its own, with TOUCH_ROWS frozen in. A
+    # copy cached while a test had set it to 5 once met a chain whose blocks
+    # were 2^17 rows: it waited for blocks past the end of its array, and
+    # every later process that compiled the ordered path hung. The block size
+    # is now the call's (ordered.chain), and the helpers read it from there:
+    # blocks of 1,000 rows here, with TOUCH_ROWS compiled in at 2^17.
+    from logsph_trace.kernels import ordered
+
+    rows, block = 5000, 1000
+    cells = np.ones((rows, 3), dtype=np.int32)
+    t_enter, t_exit = np.ones(rows), np.ones(rows)
+
+    def fresh_rows():
+        fresh = np.zeros(ordered.DONE + rows // block, dtype=np.int64)
+        fresh[ordered.FRESH_END] = rows
+        fresh[ordered.BLOCK_ROWS] = block
+        return fresh
+
+    assert ordered.TOUCH_ROWS > rows
+    fresh = fresh_rows()
+    ordered.touched(10, rows - 10, fresh, cells, t_enter, t_exit)
+    assert fresh[ordered.CLAIMED] == rows // block
+    assert np.all(fresh[ordered.DONE:] == 1)
+    assert np.all(cells[::block, 0] == 0) and np.all(t_exit[::block] == 0)  # faulted in
+    # Paced by chunk 1's start: two chunks of 2,500 rows reach the end.
+    fresh = fresh_rows()
+    ordered.touch_ahead(2, 1, np.array([0, 2500, -1]), fresh, cells, t_enter, t_exit)
+    assert np.all(fresh[ordered.DONE:] == 1)

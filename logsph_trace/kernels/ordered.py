@@ -76,7 +76,8 @@ SPINS = 64
 FRESH_FIRST = 0
 FRESH_END = 1
 CLAIMED = 2
-DONE = 3
+BLOCK_ROWS = 3
+DONE = 4
 
 
 @jit(inline="always")
@@ -138,7 +139,15 @@ def chain(first_row, last_row, chunk_rays, used, fresh_end):
     next chunk to take. ``fresh``: the output rows ``used..fresh_end-1``,
     not yet faulted in, as ``touched`` takes them, in one array: their first
     row (``FRESH_FIRST``), their end (``FRESH_END``), the next block to
-    claim (``CLAIMED``), and from ``DONE`` on per block 1 once faulted in.
+    claim (``CLAIMED``), the rows a block (``BLOCK_ROWS``: ``TOUCH_ROWS``),
+    and from ``DONE`` on per block 1 once faulted in.
+
+    The block size is read from here, not from ``TOUCH_ROWS``, by every
+    function that takes blocks: Numba freezes a global into each kernel
+    that reads it, and caches each non-inlined kernel on its own, so a
+    kernel compiled while the constant had another value (a test sets it
+    to 5) could otherwise meet a cached one compiled with this value, and
+    wait for blocks that do not exist.
     """
     n_chunks = (last_row - first_row + chunk_rays - 1) // chunk_rays
     counts = np.full(n_chunks, -1, dtype=np.int64)
@@ -150,6 +159,7 @@ def chain(first_row, last_row, chunk_rays, used, fresh_end):
     fresh = np.zeros(DONE + n_blocks, dtype=np.int64)
     fresh[FRESH_FIRST] = used
     fresh[FRESH_END] = max(fresh_end, used)
+    fresh[BLOCK_ROWS] = TOUCH_ROWS
     return n_chunks, counts, starts, reached, counter, fresh
 
 
@@ -170,8 +180,8 @@ def _claim_block(fresh, cells, t_enter, t_exit):
     """Claim the next block of ``fresh`` and fault it in (nothing when none is left)."""
     block = fetch_add(fresh, CLAIMED, 1)
     if block < fresh.shape[0] - DONE:
-        row = fresh[FRESH_FIRST] + block * TOUCH_ROWS
-        touch_rows(cells, t_enter, t_exit, row, min(fresh[FRESH_END], row + TOUCH_ROWS))
+        row = fresh[FRESH_FIRST] + block * fresh[BLOCK_ROWS]
+        touch_rows(cells, t_enter, t_exit, row, min(fresh[FRESH_END], row + fresh[BLOCK_ROWS]))
         store_ordered(fresh, DONE + block, 1)
 
 
@@ -187,8 +197,8 @@ def touched(first, last, fresh, cells, t_enter, t_exit):
     high = min(last, fresh[FRESH_END])
     if low >= high:
         return
-    block_low = (low - fresh_first) // TOUCH_ROWS
-    block_high = (high - 1 - fresh_first) // TOUCH_ROWS
+    block_low = (low - fresh_first) // fresh[BLOCK_ROWS]
+    block_high = (high - 1 - fresh_first) // fresh[BLOCK_ROWS]
     while load_ordered(fresh, CLAIMED) <= block_high:
         _claim_block(fresh, cells, t_enter, t_exit)
     spins = 0
@@ -216,7 +226,8 @@ def touch_ahead(chunk, lead, starts, fresh, cells, t_enter, t_exit):
     target = min(fresh[FRESH_END], starts[0] + int(per_chunk * ahead))
     while True:
         block = load_ordered(fresh, CLAIMED)
-        if block >= fresh.shape[0] - DONE or fresh[FRESH_FIRST] + block * TOUCH_ROWS >= target:
+        if (block >= fresh.shape[0] - DONE
+                or fresh[FRESH_FIRST] + block * fresh[BLOCK_ROWS] >= target):
             return
         _claim_block(fresh, cells, t_enter, t_exit)
 
