@@ -65,6 +65,7 @@ import numpy as np
 
 from . import _validate as validate
 from .kernels import exact as _exact
+from .kernels import ordered as _ordered
 from .traces import Traces
 
 SEGMENT_BYTES = 12 + 8 + 8  # a cell (3 x int32), t_enter, t_exit
@@ -405,9 +406,11 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
 
     See the module docstring and ``kernels.ordered``.
     ``kernels.ordered(first_row, last_row, chunk_rays, workers, *inputs,
-    *scratch, cells, t_enter, t_exit, offsets, used, fresh_end)`` traces rows
-    ``first_row..last_row-1`` and places them from segment ``used`` on,
-    faulting in the fresh rows ``used..fresh_end-1`` as it goes; it returns
+    *scratch, cells, t_enter, t_exit, offsets, used, fresh_end, block_rows)``
+    traces rows ``first_row..last_row-1`` and places them from segment
+    ``used`` on, faulting in the fresh rows ``used..fresh_end-1`` as it goes,
+    ``block_rows`` at a time (``kernels.ordered.TOUCH_ROWS``, read here at
+    each call); it returns
     per chunk the first row not placed. ``workers`` may exceed the
     thread count (the output is the same). ``buffers``: a ``TraceBuffers``
     to write into (the result is views of it).
@@ -440,7 +443,8 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
         start = lap("allocate", start)
         reached = kernels.ordered(row, n_rays, chunk_rays, workers, *inputs, *scratch, *output,
                                   offsets, used,
-                                  output[0].shape[0] if fresh and touch_ahead else used)
+                                  output[0].shape[0] if fresh and touch_ahead else used,
+                                  _ordered.TOUCH_ROWS)
         start = lap("trace", start)
         ends = np.minimum(row + chunk_rays * np.arange(1, reached.shape[0] + 1), n_rays)
         short = np.flatnonzero(reached < ends)

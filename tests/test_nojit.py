@@ -39,7 +39,11 @@ SCRIPT = textwrap.dedent(
     boxes = cart.trace_many(origins, directions)
     # The path of three threads or more, in chunks of a ray or two on 3 workers,
     # faulting its output in by blocks of 5 rows (many blocks, some claimed
-    # ahead by the pacing, some by the chunks' copies).
+    # ahead by the pacing, some by the chunks' copies). The block size is
+    # read in Python at each call and passed to the kernels: were it frozen
+    # into them, as it once was, they would be cached so (and served to later
+    # processes, which hung when they mixed them with kernels compiled with
+    # the real size).
     from logsph_trace import _batching, _validate
     from logsph_trace.kernels import ordered as ordered_kernels
     _batching.ORDERED_SEGMENTS = 200
@@ -65,12 +69,6 @@ def test_kernels_run_without_jit(tmp_path):
     plain = np.load(out)
     jitted_out = tmp_path / "jit.npz"
     env.pop("NUMBA_DISABLE_JIT")
-    # Not cached: the script sets ordered.TOUCH_ROWS, which Numba freezes into
-    # the kernels it compiles; cached, they would serve later processes (a
-    # trace_ordered faulting its output in by 5 rows). Before the block size
-    # was kept per call (ordered.chain), a kernel cached so made later
-    # processes that compiled the ordered path wait forever.
-    env["LOGSPH_TRACE_CACHE"] = "0"
     subprocess.run([sys.executable, "-c", SCRIPT, str(jitted_out)], env=env, check=True,
                    timeout=300)
     jitted = np.load(jitted_out)

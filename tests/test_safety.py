@@ -542,12 +542,13 @@ def test_the_ordered_chunks_scratch_is_kept_between_calls(monkeypatch):
 
 def test_the_fault_in_blocks_are_sized_by_the_call_not_by_a_frozen_constant():
     # The ordered path's helpers that fault in output by blocks (touched,
-    # touch_ahead) are cached each on its own, with TOUCH_ROWS frozen in. A
-    # copy cached while a test had set it to 5 once met a chain whose blocks
-    # were 2^17 rows: it waited for blocks past the end of its array, and
-    # every later process that compiled the ordered path hung. The block size
-    # is now the call's (ordered.chain), and the helpers read it from there:
-    # blocks of 1,000 rows here, with TOUCH_ROWS compiled in at 2^17.
+    # touch_ahead) are cached each on its own. When they read TOUCH_ROWS as a
+    # global, frozen in, a copy cached while a test had set it to 5 once met
+    # a chain whose blocks were 2^17 rows: it waited for blocks past the end
+    # of its array, and every later process that compiled the ordered path
+    # hung. The block size is now the call's (an argument, kept in
+    # ordered.chain's state), and the helpers read it from there: blocks of
+    # 1,000 rows here.
     from logsph_trace.kernels import ordered
 
     rows, block = 5000, 1000
@@ -560,7 +561,6 @@ def test_the_fault_in_blocks_are_sized_by_the_call_not_by_a_frozen_constant():
         fresh[ordered.BLOCK_ROWS] = block
         return fresh
 
-    assert ordered.TOUCH_ROWS > rows
     fresh = fresh_rows()
     ordered.touched(10, rows - 10, fresh, cells, t_enter, t_exit)
     assert fresh[ordered.CLAIMED] == rows // block

@@ -201,12 +201,12 @@ def box_halves(split, anchor, limit, origins, directions, low, size, shape, cell
 @jit(parallel=True)
 def box_ordered(first_row, last_row, chunk_rays, workers, origins, directions, low, size, shape,
                 loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets, used,
-                fresh_end):
+                fresh_end, block_rows):
     """Chunks taken in order and placed by the threads that traced them
     (``exact.trace_ordered``'s contract)."""
     room = chunk_rays * box_max_segments(shape)
     n_chunks, counts, starts, reached, counter, fresh = chain(first_row, last_row, chunk_rays,
-                                                              used, fresh_end)
+                                                              used, fresh_end, block_rows)
     for worker in prange(workers):
         waiting = -1
         side = 0

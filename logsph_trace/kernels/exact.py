@@ -1039,7 +1039,7 @@ def trace_chunks(starts, regions, origins, directions, t_max, grid, cells, t_ent
 @jit(parallel=True)
 def trace_ordered(first_row, last_row, chunk_rays, workers, origins, directions, t_max, grid,
                   loose_cells, loose_enter, loose_exit, cells, t_enter, t_exit, offsets, used,
-                  fresh_end):
+                  fresh_end, block_rows):
     """Rows ``first_row..last_row-1``, in chunks of ``chunk_rays``, taken in order by
     ``workers`` threads and placed in the output from segment ``used`` on
     (``kernels.ordered``).
@@ -1048,16 +1048,16 @@ def trace_ordered(first_row, last_row, chunk_rays, workers, origins, directions,
     ``room = chunk_rays * max_segments`` (two buffers per worker), so a chunk
     always fits. ``offsets[first_row]`` must be ``used``; every placed ray
     gets ``offsets[row + 1]``. Output rows ``used..fresh_end-1`` are fresh
-    memory, faulted in by the workers ahead of the chunks (``fresh_end``
-    at most ``used``: none is). Returns per chunk the first row not placed (the
-    chunk's end when it was): a chunk that would end past the output and the
-    chunks after it are not placed.
+    memory, faulted in by the workers ahead of the chunks, ``block_rows``
+    rows at a time (``fresh_end`` at most ``used``: none is). Returns per
+    chunk the first row not placed (the chunk's end when it was): a chunk
+    that would end past the output and the chunks after it are not placed.
     """
     size = grid_scratch_size(grid)
     room = chunk_rays * max_segments(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
                                      grid.phi_edges.shape[0] - 1)
     n_chunks, counts, starts, reached, counter, fresh = chain(first_row, last_row, chunk_rays,
-                                                              used, fresh_end)
+                                                              used, fresh_end, block_rows)
     for worker in prange(workers):
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)

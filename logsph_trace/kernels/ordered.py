@@ -68,7 +68,8 @@ from .atomic import fetch_add, load_ordered, store_ordered, yield_thread
 from .stream import stream_segments
 
 # Output rows faulted in at a time by one worker: 1 MiB of each float64 array
-# and 1.5 MiB of the cells.
+# and 1.5 MiB of the cells. Read by ``_batching.run_ordered`` at each call and
+# passed to the kernels, never frozen into them: a test sets it to 5.
 TOUCH_ROWS = 1 << 17
 # Loads a wait spins for before it yields its CPU on every further load.
 SPINS = 64
@@ -131,7 +132,7 @@ def start_of(chunk, starts):
 
 
 @jit(inline="always")
-def chain(first_row, last_row, chunk_rays, used, fresh_end):
+def chain(first_row, last_row, chunk_rays, used, fresh_end, block_rows):
     """A call's shared state: (n_chunks, counts, starts, reached, counter, fresh).
 
     ``counts`` and ``starts`` as in ``post`` (chunk 0 starts at ``used``);
@@ -139,15 +140,16 @@ def chain(first_row, last_row, chunk_rays, used, fresh_end):
     next chunk to take. ``fresh``: the output rows ``used..fresh_end-1``,
     not yet faulted in, as ``touched`` takes them, in one array: their first
     row (``FRESH_FIRST``), their end (``FRESH_END``), the next block to
-    claim (``CLAIMED``), the rows a block (``BLOCK_ROWS``: ``TOUCH_ROWS``),
-    and from ``DONE`` on per block 1 once faulted in.
+    claim (``CLAIMED``), the rows a block (``BLOCK_ROWS``: ``block_rows``,
+    the caller's ``TOUCH_ROWS``), and from ``DONE`` on per block 1 once
+    faulted in.
 
-    The block size is read from here, not from ``TOUCH_ROWS``, by every
-    function that takes blocks: Numba freezes a global into each kernel
-    that reads it, and caches each non-inlined kernel on its own, so a
-    kernel compiled while the constant had another value (a test sets it
-    to 5) could otherwise meet a cached one compiled with this value, and
-    wait for blocks that do not exist.
+    The block size is the call's, read from here by every function that
+    takes blocks, not a global: Numba freezes a global into each kernel
+    that reads it and caches each non-inlined kernel on its own, so kernels
+    compiled while the global had another value (a test sets it to 5) once
+    met cached ones compiled with this one, and waited for blocks that did
+    not exist.
     """
     n_chunks = (last_row - first_row + chunk_rays - 1) // chunk_rays
     counts = np.full(n_chunks, -1, dtype=np.int64)
@@ -155,11 +157,11 @@ def chain(first_row, last_row, chunk_rays, used, fresh_end):
     starts[0] = used
     reached = np.empty(n_chunks, dtype=np.int64)
     counter = np.zeros(1, dtype=np.int64)
-    n_blocks = (max(fresh_end - used, 0) + TOUCH_ROWS - 1) // TOUCH_ROWS
+    n_blocks = (max(fresh_end - used, 0) + block_rows - 1) // block_rows
     fresh = np.zeros(DONE + n_blocks, dtype=np.int64)
     fresh[FRESH_FIRST] = used
     fresh[FRESH_END] = max(fresh_end, used)
-    fresh[BLOCK_ROWS] = TOUCH_ROWS
+    fresh[BLOCK_ROWS] = block_rows
     return n_chunks, counts, starts, reached, counter, fresh
 
 
