@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from logsph_trace._jit import jit
-from logsph_trace.kernels.atomic import fetch_max, fetch_min
-from logsph_trace.kernels.occupancy import raise_to
+from logsph_trace.kernels.atomic import fetch_max, fetch_min, lower_to, raise_to
 
 
 @jit
@@ -40,6 +39,12 @@ def _raise_all(array, indices, values):
         raise_to(array, indices[n], values[n])
 
 
+@jit
+def _lower_all(array, indices, values):
+    for n in range(indices.shape[0]):
+        lower_to(array, indices[n], values[n])
+
+
 def test_raise_to_keeps_the_largest_value_each_index_is_given():
     rng = np.random.default_rng(3)
     indices = rng.integers(0, 50, 2000)
@@ -48,4 +53,15 @@ def test_raise_to_keeps_the_largest_value_each_index_is_given():
     _raise_all(array, indices, values)
     want = np.zeros(50, dtype=np.int64)
     np.maximum.at(want, indices, values)
+    np.testing.assert_array_equal(array, want)
+
+
+def test_lower_to_keeps_the_smallest_value_each_index_is_given():
+    rng = np.random.default_rng(4)
+    indices = rng.integers(0, 50, 2000)
+    values = rng.integers(0, 250, 2000).astype(np.uint8)
+    array = np.full(50, 255, dtype=np.uint8)  # unsigned, above 127: as the bins' limits
+    _lower_all(array, indices, values)
+    want = np.full(50, 255, dtype=np.uint8)
+    np.minimum.at(want, indices, values)
     np.testing.assert_array_equal(array, want)

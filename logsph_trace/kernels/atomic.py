@@ -24,13 +24,16 @@ scan's free extent of each column is raised with ``fetch_max``. A minimum
 or a maximum does not depend on the order the threads come in, so one
 shared array gives the same result on any number of threads, where a row
 per thread would have to be read, all rows, by whatever merges them.
+``lower_to`` and ``raise_to`` wrap the two with a relaxed load first, so
+the locked instruction runs only where it changes the value.
 
 A thread that waits for another's store spins on its loads a while, then
 calls ``yield_thread`` between them (``ordered.pause``): the C library's
 ``sched_yield``, which hands the CPU to another runnable thread, if any.
 With more threads than CPUs the one being waited for may be among those.
 
-With ``NUMBA_DISABLE_JIT=1`` all nine are plain Python.
+With ``NUMBA_DISABLE_JIT=1`` all nine are plain Python (and the two
+wrappers with them).
 """
 
 import ctypes
@@ -43,6 +46,8 @@ from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
+
+from .._jit import jit
 
 if numba.config.DISABLE_JIT:
 
@@ -206,3 +211,19 @@ else:
             return context.get_dummy_value()
 
         return types.void(), codegen
+
+
+@jit(inline="always")
+def lower_to(array, index, value):
+    """``array[index] = min(array[index], value)`` from any thread: a relaxed
+    load first, the locked ``fetch_min`` only where it lowers."""
+    if value < load_relaxed(array, index):
+        fetch_min(array, index, value)
+
+
+@jit(inline="always")
+def raise_to(array, index, value):
+    """``array[index] = max(array[index], value)`` from any thread: a relaxed
+    load first, the locked ``fetch_max`` only where it raises."""
+    if value > load_relaxed(array, index):
+        fetch_max(array, index, value)

@@ -11,7 +11,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .atomic import exchange, fetch_max, fetch_min, load_relaxed, store_relaxed
+from .atomic import exchange, load_relaxed, lower_to, raise_to, store_relaxed
 from .exact import (
     PHI,
     THETA,
@@ -635,8 +635,7 @@ def bin_rays(origin, points, q, q_coarse, bins, coarse, first):
                 coarse[row] = b
                 # Rows rise within a block: the locked minimum only for the
                 # first of a bin here, and only while no earlier row is in.
-                if load_relaxed(first, b) > row:
-                    fetch_min(first, b, row)
+                lower_to(first, b, row)
 
 
 @jit(inline="always")
@@ -963,10 +962,7 @@ def _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit):
         for bu in range(u_from, u_to + 1):
             for bv in range(v_from, v_to + 1):
                 index = (face * q + bu) * q + bv
-                # Shared by all threads: a relaxed load first, the locked
-                # minimum only where it lowers.
-                if load_relaxed(limit, index) > i:
-                    fetch_min(limit, index, i)
+                lower_to(limit, index, i)  # shared by all threads
 
 
 @jit(parallel=True)
@@ -984,7 +980,7 @@ def mark_candidates(origin, grid, masks, skip, q, rays, view, limit, workers):
     x, y, z and half-angle) holding every ray's direction; columns not in
     ``view`` (``columns_in_view``) are passed over; the ``workers`` (one per
     thread) take blocks of columns in turn (``in_turn``) and lower the one
-    ``limit`` together (``atomic.fetch_min``: a minimum, the same on any
+    ``limit`` together (``atomic.lower_to``: a minimum, the same on any
     number of threads).
     """
     n_theta = grid.theta_edges.shape[0] - 1
@@ -1176,14 +1172,6 @@ def radial_ray(points, row, max_range, grid, per_log, guesses):
         hit = is_hit and 0 <= shell < n_rho
         free = min(shell, n_rho) if hit else min(shell + 1, n_rho)
     return j * n_phi + k, free, (shell * n_theta + j) * n_phi + k if hit else -1
-
-
-@jit(inline="always")
-def raise_to(array, index, value):
-    """``array[index] = max(array[index], value)`` from any thread: a relaxed
-    load first, the locked ``fetch_max`` only when it raises."""
-    if value > load_relaxed(array, index):
-        fetch_max(array, index, value)
 
 
 @jit(parallel=True)
