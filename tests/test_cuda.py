@@ -135,6 +135,48 @@ def test_every_gpu_kernel_compiles_and_assembles_for_the_device(tmp_path):
     assert re.search(r"compiled (\d+) of \1$", compiled.stdout.strip()), compiled.stdout
 
 
+_RELAXED_STORES = """
+import types, numpy as np
+from numba import cuda
+from numba import types as nb
+from numba.cuda import compile_ptx, dispatcher
+from cuda.pathfinder import find_nvidia_binary_utility
+from cuda_compile import CC, _assemble
+from logsph_trace.kernels.atomic import store_relaxed
+dispatcher.get_current_device = lambda: types.SimpleNamespace(compute_capability=CC)
+
+def kernel(a, b, c, d, e):
+    i = cuda.grid(1)
+    if i < a.shape[0]:
+        store_relaxed(a, i, 1)
+        store_relaxed(b, i, i)
+        store_relaxed(c, i, i)
+        store_relaxed(d, i, i)
+        store_relaxed(e, i, 0.5)
+
+ptx, _ = compile_ptx(kernel, (nb.uint8[::1], nb.int16[::1], nb.int32[::1], nb.int64[::1],
+                              nb.float64[::1]), cc=CC)
+_assemble(ptx, find_nvidia_binary_utility("ptxas"))
+print(sorted(line.split()[0] for line in ptx.splitlines() if line.strip().startswith("st.")))
+"""
+
+
+@pytest.mark.skipif(importlib.util.find_spec("numba_cuda") is None,
+                    reason="needs numba-cuda (the cuda extra; .ci/run installs it for this test)")
+def test_a_relaxed_store_compiles_to_a_ptx_volatile_store_and_assembles():
+    # NVVM takes no LLVM atomic store; the walk, which also runs on the GPU,
+    # stores its flags relaxed: there PTX's st.volatile (relaxed, sys scope).
+    env = dict(os.environ, PYTHONPATH=_python_path())
+    for name in ("NUMBA_ENABLE_CUDASIM", "NUMBA_DISABLE_JIT"):
+        env.pop(name, None)
+    result = subprocess.run([sys.executable, "-c", _RELAXED_STORES], capture_output=True,
+                            text=True, cwd=TESTS, timeout=600, env=env)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.split("\n")[-2] == str(sorted(
+        ["st.volatile.u8", "st.volatile.u16", "st.volatile.u32", "st.volatile.u64",
+         "st.volatile.u64"])), result.stdout
+
+
 def test_import_and_the_cpu_path_need_no_numba_cuda():
     code = (
         "import sys; sys.modules['numba.cuda'] = None\n"

@@ -1,11 +1,15 @@
 """Flags that several threads set in one array: single stores with a defined meaning.
 
-The occupancy update marks a scan's hit cells in one shared array of bytes,
-from all threads at once. Two rays that end in the same cell store the same
-flag there; with ordinary stores that is a data race, which LLVM's memory
-model leaves undefined. ``store_relaxed`` and ``load_relaxed`` are atomic
-accesses without ordering (LLVM ``monotonic``): on x86 and AArch64 the same
-single instructions, now with a defined result. ``exchange`` swaps a flag
+The occupancy update marks a scan's cells, those its rays cross and those
+they end in, in one shared array of bytes, from all threads at once. Two
+rays that cross or end in the same cell store the same flag there; with
+ordinary stores that is a data race, which LLVM's memory model leaves
+undefined. ``store_relaxed`` and ``load_relaxed`` are atomic accesses
+without ordering (LLVM ``monotonic``): on x86 and AArch64 the same single
+instructions, now with a defined result. The walk that stores the crossed
+cells' flags also compiles for the GPU, where numba-cuda's NVVM takes no
+atomic store: there ``store_relaxed`` is PTX's ``st.volatile``, which PTX's
+memory model makes a relaxed store (``.sys`` scope) since sm_70. ``exchange`` swaps a flag
 out atomically (``xchg``, a locked instruction, so worth a relaxed load
 first), so that of all the rays ending in one cell exactly one takes its
 flag, and the cell is updated once, whichever thread that is.
@@ -97,15 +101,42 @@ else:
                                         context.make_array(array_type)(context, builder, array),
                                         [index], wraparound=False)
 
+    # PTX's ``st.volatile``, by the size of the item: since sm_70 it is
+    # ``st.relaxed.sys``, a relaxed store (PTX ISA, memory consistency model),
+    # and older GPUs take it too. Items of 1 and 2 bytes come from a 16-bit
+    # register.
+    _PTX_STORES = {1: ("u8", "h", 16), 2: ("u16", "h", 16), 4: ("u32", "r", 32),
+                   8: ("u64", "l", 64)}
+
     def _store(ordering):
-        """Code for ``array[index] = value`` as one atomic store with ``ordering``."""
+        """Code for ``array[index] = value`` as one atomic store with ``ordering``.
+
+        numba-cuda compiles through NVVM, which takes no atomic store. There,
+        where only the relaxed store is asked for (the one ``walk_ray``, which
+        also runs on the GPU, uses), it is PTX's volatile store, the relaxed
+        store of PTX's own memory model.
+        """
 
         def codegen(context, builder, signature, args):
             array_type, _, value_type = signature.args
             pointer = _element_pointer(context, builder, array_type, args[0], args[1])
             item = context.cast(builder, args[2], value_type, array_type.dtype)
             size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
-            builder.store_atomic(item, pointer, ordering, size)
+            if getattr(context, "target_name", "cpu") != "cuda":
+                builder.store_atomic(item, pointer, ordering, size)
+            elif ordering == "monotonic" and size in _PTX_STORES:
+                kind, register, bits = _PTX_STORES[size]
+                width = ir.IntType(bits)
+                if isinstance(item.type, ir.IntType):
+                    value = builder.zext(item, width) if item.type.width < bits else item
+                else:
+                    value = builder.bitcast(item, width)
+                store = ir.InlineAsm(ir.FunctionType(ir.VoidType(), [ir.IntType(64), width]),
+                                     f"st.volatile.{kind} [$0], $1;", f"l,{register},~{{memory}}",
+                                     side_effect=True)
+                builder.call(store, [builder.ptrtoint(pointer, ir.IntType(64)), value])
+            else:
+                raise NotImplementedError(f"no {ordering} store of {size} bytes under CUDA")
             return context.get_dummy_value()
 
         return codegen
