@@ -82,8 +82,9 @@ def _coherent_plan(grid, origin, n_rays):
     return min(max(math.ceil(2.0 / step), 8), COHERENT_MAX_BINS)
 
 
-# A scan's flags (one row per thread) are kept zero for this Python thread's
-# next scan up to this size; a larger set is freed after its scan.
+# A scan's flags (a byte per cell, shared by the threads) are kept zero for
+# this Python thread's next scan up to this size; a larger set is freed
+# after its scan.
 KEEP_FLAG_BYTES = 1 << 27
 _flags = threading.local()
 
@@ -95,7 +96,7 @@ def _zeroed_scratch(kind, shape, dtype):
     The kernels that read a scan's flags clear them as they go
     (``apply_scan``, ``apply_radial``), so the next scan in this Python thread
     reuses them instead of zeroing fresh memory on one thread (a 4 MB
-    ``np.zeros`` per thread and scan on the benchmark's map). Held per Python
+    ``np.zeros`` per scan on the benchmark's map). Held per Python
     thread, so concurrent scans never share them; an exception drops them.
     """
     held = getattr(_flags, kind, None)
@@ -108,7 +109,7 @@ def _zeroed_scratch(kind, shape, dtype):
         setattr(_flags, kind, held)
 
 
-def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view):
+def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, workers):
     """Flag the cells the rays from ``origin`` cross (``_kernels.mark_scan``).
 
     From inside the egocentric gap (``_coherent_plan``), most crossings lie
@@ -130,7 +131,8 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view):
        in one column from there adds that column's shells: when its end
        point is clear of the cell's faces, neither is walked.
 
-    ``free`` and ``words``: the per-thread flags (``apply_scan``); ``hits``
+    ``free`` and ``words``: the scan's flags (``apply_scan``), shared by the
+    ``workers`` (one per thread); ``hits``
     gets each ray's hit cell; ``view`` (a byte per column) the columns some
     ray may meet (``_kernels.columns_in_view``; all of them when the scan
     is walked ray by ray), the only ones ``apply_scan`` reads. Returns how
@@ -145,7 +147,7 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view):
     if per_side == 0:
         view[:] = 1
         _kernels.mark_scan(origin, points, max_range, args, free, hits, _kernels.WALK_ALL,
-                           no_rows, no_rows, no_rows, no_marks, 0)
+                           no_rows, no_rows, no_rows, no_marks, 0, workers)
         return 0, 0, 0
     n_bins = 6 * per_side * per_side
     bins = np.empty(points.shape[0], dtype=np.int64)
@@ -154,20 +156,19 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view):
     first = np.empty(6 * coarse * coarse, dtype=np.int64)
     _kernels.bin_rays(origin, points, per_side, coarse, bins, coarse_bins, first)
     _kernels.mark_scan(origin, points, max_range, args, free, hits, _kernels.WALK_SAMPLES,
-                       coarse_bins, first, bins, no_marks, 0)
+                       coarse_bins, first, bins, no_marks, 0, workers)
     rays = np.empty(4)
     # Every ray's coarse bin holds a sample: the cone of those bins holds every ray.
-    _kernels.ray_cone(first, points.shape[0], coarse, free.shape[0], rays)
+    _kernels.ray_cone(first, points.shape[0], coarse, workers, rays)
     _kernels.columns_in_view(origin, args, rays, view)
     skip = min(grid.n_rho - 1, 63)  # the masks' 64 bits
     masks = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint64)
-    _kernels.near_masks(free, words, grid.n_rho, skip, view, masks)
+    _kernels.near_masks(words, grid.n_rho, skip, view, masks, workers)
     limit = np.empty(n_bins, dtype=np.uint8)
-    _kernels.mark_candidates(origin, args, masks, skip, per_side, rays, view, limit,
-                             free.shape[0])
+    _kernels.mark_candidates(origin, args, masks, skip, per_side, rays, view, limit, workers)
     started, ended, straight = _kernels.mark_scan(origin, points, max_range, args, free, hits,
                                                   _kernels.WALK_OTHERS, coarse_bins, first, bins,
-                                                  limit, skip)
+                                                  limit, skip, workers)
     return int(started), int(ended), int(straight)
 
 
@@ -246,10 +247,9 @@ class OccupancyGrid:
         validate.grid(grid)
         self._device = validate.device(device)
         self._cuda = cuda_backend() if device == "cuda" else None
-        # log_odds and labels (4 bytes a cell each), and in integrate a byte per
-        # cell per thread
-        validate.fits("grid", int(np.prod(grid.shape, dtype=np.float64))
-                      * (8 + numba.get_num_threads()), f"an occupancy map of {grid.shape} cells")
+        # log_odds and labels (4 bytes a cell each), and in integrate a byte per cell
+        validate.fits("grid", int(np.prod(grid.shape, dtype=np.float64)) * 9,
+                      f"an occupancy map of {grid.shape} cells")
         self._grid = grid
         self._last_scan = None
         self._labels = np.zeros(grid.shape, dtype=np.int32)
@@ -355,10 +355,10 @@ class OccupancyGrid:
 
         Notes
         -----
-        A scan's flags (for a sensor off the centre, a byte per cell and
-        thread: 4 MB per thread for a 64 x 360 x 180 map) are kept for the
-        next scan in the same Python thread, up to 128 MB, so that repeated
-        scans do not zero fresh memory each time.
+        A scan's flags (for a sensor off the centre, a byte per cell,
+        shared by the threads: 4 MB for a 64 x 360 x 180 map) are kept for
+        the next scan in the same Python thread, up to 128 MB, so that
+        repeated scans do not zero fresh memory each time.
         """
         start = time.perf_counter()
         validate.choice("invalid", invalid, ("raise", "skip"))
@@ -405,14 +405,15 @@ class OccupancyGrid:
             # Each ray's direction, length and hit are set up in the kernels, in
             # parallel. Hits are column-major (see apply_scan).
             hits = np.empty(points.shape[0], dtype=np.int64)
-            with _zeroed_scratch("flags", (threads, -(-n_cells // 8)), np.uint64) as words:
+            with _zeroed_scratch("flags", (-(-n_cells // 8),), np.uint64) as words:
                 free = words.view(np.uint8)  # the same memory, a byte per cell
                 view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
                 start = lap("prepare", start)
-                _mark_off_centre(grid, origin, points, max_range, free, hits, words, view)
+                _mark_off_centre(grid, origin, points, max_range, free, hits, words, view,
+                                 threads)
                 start = lap("mark", start)
                 _kernels.apply_scan(log_odds, free, words, hits, grid.n_rho,
-                                    view, *update)
+                                    view, *update, threads)
                 lap("apply", start)
         if labels is not None:
             if not at_centre:  # the walk's hits are column-major (see apply_scan)

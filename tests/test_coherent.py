@@ -66,17 +66,19 @@ def coherent_from_1000_rays(monkeypatch):
     monkeypatch.setattr(occ, "COHERENT_MIN_RAYS", 1000)
 
 
-def _flags(grid, sensor, points, max_range=np.inf):
-    """Run ``_mark_off_centre``; return its flag union, hits, and its counts of
-    rays let start beyond the gap, ending below that and staying in a column."""
+def _flags(grid, sensor, points, max_range=np.inf, workers=None):
+    """Run ``_mark_off_centre`` (one worker per thread by default); return its
+    flags, hits, and its counts of rays let start beyond the gap, ending below
+    that and staying in a column."""
     n_cells = int(np.prod(grid.shape))
-    words = np.zeros((numba.get_num_threads(), -(-n_cells // 8)), dtype=np.uint64)
+    words = np.zeros(-(-n_cells // 8), dtype=np.uint64)
     free = words.view(np.uint8)
     hits = np.empty(points.shape[0], dtype=np.int64)
     view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
     counts = occ._mark_off_centre(grid, np.asarray(sensor, dtype=np.float64), points,
-                                  max_range, free, hits, words, view)
-    return np.any(free[:, :n_cells] != 0, axis=0), hits, *counts
+                                  max_range, free, hits, words, view,
+                                  workers or numba.get_num_threads())
+    return free[:n_cells] != 0, hits, *counts
 
 
 @pytest.mark.parametrize("grid, sensor, forward, focal", SCANS)
@@ -88,20 +90,24 @@ def test_coherent_scan_equals_walking_every_ray(grid, sensor, forward, focal,
         got = lt.OccupancyGrid(grid).integrate(points, sensor, max_range=max_range)
         np.testing.assert_array_equal(got.log_odds,
                                       _reference_log_odds(grid, points, sensor, max_range))
-    # The scan took the shortcut for most rays, the same way on any thread count.
+    # The scan took the shortcut for most rays, the same way on any thread
+    # count: all workers flag one shared array, 1 to 7 of them on 1 thread
+    # and on all.
     flags, hits, skipped, ended, straight = _flags(grid, sensor, points)
     assert skipped > 0.25 * points.shape[0]
     assert ended > 0.02 * points.shape[0]  # and some were not walked at all
     assert straight > 0.02 * points.shape[0]
     threads = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
-        one = _flags(grid, sensor, points)
-    finally:
-        numba.set_num_threads(threads)
-    np.testing.assert_array_equal(one[0], flags)
-    np.testing.assert_array_equal(one[1], hits)
-    assert one[2:] == (skipped, ended, straight)
+    for using in (1, threads):
+        numba.set_num_threads(using)
+        try:
+            for workers in (1, 2, 7):
+                other = _flags(grid, sensor, points, workers=workers)
+                np.testing.assert_array_equal(other[0], flags)
+                np.testing.assert_array_equal(other[1], hits)
+                assert other[2:] == (skipped, ended, straight)
+        finally:
+            numba.set_num_threads(threads)
 
 
 @pytest.mark.parametrize("kind", ["centre", "y_axis", "corner"])
@@ -237,11 +243,11 @@ def test_points_at_the_sensor_are_no_rays_in_a_coherent_scan(scan, coherent_from
     got = lt.OccupancyGrid(grid).integrate(points, sensor)
     np.testing.assert_array_equal(got.log_odds, _reference_log_odds(grid, points, sensor))
     n_cells = int(np.prod(grid.shape))
-    words = np.zeros((numba.get_num_threads(), -(-n_cells // 8)), dtype=np.uint64)
+    words = np.zeros(-(-n_cells // 8), dtype=np.uint64)
     hits = np.full(points.shape[0], 2 * n_cells, dtype=np.int64)
     view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
     skipped = occ._mark_off_centre(grid, sensor, points, np.inf, words.view(np.uint8), hits,
-                                   words, view)[0]
+                                   words, view, numba.get_num_threads())[0]
     assert skipped > 0  # the coherent scan
     assert np.all(hits[at_sensor] == -1)
     assert np.all(hits < n_cells)
@@ -435,19 +441,19 @@ def test_a_column_with_a_ray_in_it_is_in_view(grid, sensor):
                                          (150, 17)])
 def test_near_masks_name_every_flagged_cell_below_skip(n_rho, skip):
     # Against a plain reading of the flags: columns that start anywhere in
-    # a word, flags from 1 to 3 threads, sparse and dense, columns out of view.
+    # a word, sparse and dense flags (free and hit), columns out of view, 1
+    # to 3 workers.
     rng = np.random.default_rng(n_rho * 100 + skip)
     n_columns = 37
     n_cells = n_rho * n_columns
-    for threads, density in ((1, 0.3), (2, 0.02), (3, 0.6)):
-        words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
+    for workers, density in ((1, 0.3), (2, 0.02), (3, 0.6)):
+        words = np.zeros(-(-n_cells // 8), dtype=np.uint64)
         free = words.view(np.uint8)
-        free[:, :n_cells] = (rng.random((threads, n_cells)) < density) * rng.integers(
-            1, 3, (threads, n_cells))
+        free[:n_cells] = (rng.random(n_cells) < density) * rng.integers(1, 3, n_cells)
         view = (rng.random(n_columns) < 0.8).astype(np.uint8)
         masks = np.empty(n_columns, dtype=np.uint64)
-        kernels.near_masks(free, words, n_rho, skip, view, masks)
-        flagged = free[:, :n_cells].reshape(threads, n_columns, n_rho).any(axis=0)[:, :skip]
+        kernels.near_masks(words, n_rho, skip, view, masks, workers)
+        flagged = (free[:n_cells] != 0).reshape(n_columns, n_rho)[:, :skip]
         want = (flagged * (1 << np.arange(skip, dtype=np.uint64))).sum(axis=1, dtype=np.uint64)
         np.testing.assert_array_equal(masks, np.where(view != 0, want, 0).astype(np.uint64))
 
@@ -455,22 +461,22 @@ def test_near_masks_name_every_flagged_cell_below_skip(n_rho, skip):
 @pytest.mark.parametrize("n_rho", [3, 5, 8, 13, 64])
 def test_apply_scan_updates_each_flagged_cell_in_view_once_and_clears_the_flags(n_rho):
     # Against a plain reading: words that span two or more columns (n_rho not
-    # a multiple of 8), in and out of view, flags from 1 to 3 rows, hits on
-    # flagged and unflagged cells, several hits in one cell.
+    # a multiple of 8), in and out of view, 1 to 3 workers, hits on flagged
+    # and unflagged cells, several hits in one cell.
     rng = np.random.default_rng(n_rho)
     n_columns = 41
     n_cells = n_rho * n_columns
     log_hit, log_miss, log_min, log_max = 0.85, -0.4, -2.0, 3.5
-    for threads, density in ((1, 0.3), (2, 0.05), (3, 0.6)):
+    for workers, density in ((1, 0.3), (2, 0.05), (3, 0.6)):
         view = (rng.random(n_columns) < 0.6).astype(np.uint8)
         in_view = np.repeat(view != 0, n_rho)  # column-major: a column's cells in a row
-        words = np.zeros((threads, -(-n_cells // 8)), dtype=np.uint64)
+        words = np.zeros(-(-n_cells // 8), dtype=np.uint64)
         free = words.view(np.uint8)
-        free[:, :n_cells] = (rng.random((threads, n_cells)) < density) * in_view
+        free[:n_cells] = (rng.random(n_cells) < density) * in_view
         hits = np.where(rng.random(300) < 0.5, rng.choice(np.flatnonzero(in_view), 300), -1)
         start = rng.normal(0.0, 1.5, n_cells).astype(np.float32)
         # The map is row-major, (i, column); the flags column-major, (column, i).
-        flagged = free[:, :n_cells].any(axis=0).reshape(n_columns, n_rho).T.ravel()
+        flagged = (free[:n_cells] != 0).reshape(n_columns, n_rho).T.ravel()
         hit = np.zeros(n_cells, dtype=bool)
         column, i = np.divmod(hits[hits >= 0], n_rho)
         hit[i * n_columns + column] = True
@@ -482,6 +488,6 @@ def test_apply_scan_updates_each_flagged_cell_in_view_once_and_clears_the_flags(
         want = want.astype(np.float32)
         got = start.copy()
         kernels.apply_scan(got, free, words, hits, n_rho, view, log_hit, log_miss, log_min,
-                           log_max)
+                           log_max, workers)
         np.testing.assert_array_equal(got, want)
         assert not words.any()  # ready for the next scan

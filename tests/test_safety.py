@@ -393,14 +393,12 @@ def test_requests_that_cannot_fit_fail_before_allocating():
 
 def test_an_occupancy_map_counts_its_labels_in_the_memory_it_needs(monkeypatch):
     # log-odds (float32) and labels (int32) per cell, and a flag byte per cell
-    # per thread while integrating: memory for all but the labels is too little.
-    import numba
-
+    # while integrating: memory for all but the labels is too little.
     from logsph_trace import _validate
 
     grid = lt.Grid(0.3, 10, 8, 12, 6)
     n_cells = 8 * 12 * 6
-    without_labels = n_cells * (4 + numba.get_num_threads())
+    without_labels = n_cells * (4 + 1)
     monkeypatch.setattr(_validate, "available_memory", lambda: without_labels + 100)
     with pytest.raises(MemoryError, match=r"grid: an occupancy map of \(8, 12, 6\) cells"):
         OccupancyGrid(grid)

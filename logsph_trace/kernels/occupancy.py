@@ -1,8 +1,12 @@
 """Occupancy kernels (``@jit`` only): integrate a scan, first-occupied probabilities.
 
-Parallel work never shares a write: each worker (one per thread) marks its
-own row of the free/hit flag arrays, and a second parallel pass over cells
-combines the rows.
+A scan's rays are walked on all threads at once into one array of flags, a
+byte per cell: a walk only ever stores ``FREE`` there, so threads that
+store to the same cell store the same byte, with relaxed atomic stores
+(``atomic.store_relaxed``: a defined result). A second parallel pass over
+cells then applies the update once per flagged cell. The other values that
+threads share are minima and maxima (``atomic.lower_to``, ``raise_to``) or
+stores of one value, so no result depends on the number of threads.
 """
 
 import math
@@ -37,7 +41,8 @@ from .locate import (
 )
 from .ordered import take
 
-# Per-thread flag bits of a cell in one scan.
+# A cell's flag in one scan: a ray crossed it, or ended in it (the hit
+# replaces the byte: it wins over a miss).
 FREE = 1
 HIT = 2
 
@@ -110,8 +115,10 @@ def _near_phi_face(x, y, z, zone, within, grid):
 def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zones, lookups,
              free, skip):
     """Flag the cells one sensor ray (unit direction) crosses up to ``t_max`` in
-    ``free`` (indexed column-major, see ``apply_scan``); return the index of its
-    end cell when it is a hit that ends inside the region, else -1.
+    ``free`` (indexed column-major, see ``apply_scan``; ``FREE``, stored
+    relaxed, since other rays may flag the same cell at once); return the
+    index of its end cell when it is a hit that ends inside the region, else
+    -1.
 
     The angular families are planned and timed by the exact kernel's phases 1
     and 2 (``theta_plan`` ... ``phi_times``). Between two angular crossings the
@@ -263,7 +270,7 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
                         at_crossing and _left_within_snap(t_now, t_next, snap, t_closest, h2, i,
                                                           rho_sq))
                     if left_flagged:
-                        free[column * n_rho + i] = 1
+                        store_relaxed(free, column * n_rho + i, FREE)
                     crossed = i
                     crossed_out = False
                     i -= 1
@@ -283,7 +290,7 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
                         else:  # a whole shell, or the dip: its chord
                             sliver = inward and 4.0 * (rho_sq[i + 1] - h2) <= snap * snap
                         if not sliver:
-                            free[column * n_rho + i] = 1
+                            store_relaxed(free, column * n_rho + i, FREE)
                     left_flagged = column_in and i >= 0 and not sliver
                     crossed = i + 1
                     crossed_out = True
@@ -302,7 +309,7 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
             else:
                 stays = _in_shell((t_next - snap - t_closest) ** 2 + h2, i, rho_sq)
             if stays:
-                free[column * n_rho + i] = 1
+                store_relaxed(free, column * n_rho + i, FREE)
         if t_next >= t_final:
             if not (is_hit and t_max <= _sphere_time(t_closest, h2, rho_sq[n_rho], True)):
                 return -1  # no hit, or the ray leaves the region before its end
@@ -469,14 +476,15 @@ WALK_OTHERS = 2
 
 
 @jit(parallel=True)
-def mark_scan(origin, points, max_range, grid, free, hits, walk, coarse, first, bins, limit, skip):
+def mark_scan(origin, points, max_range, grid, free, hits, walk, coarse, first, bins, limit, skip,
+              workers):
     """Walk the ray from ``origin`` to every point of a scan (see ``walk_ray``).
 
     ``max_range``: rays are cut there and end in no hit (``inf``: none).
-    ``grid`` is the grid's ``GridArrays``. ``free`` (workers, n_cells) uint8
-    has one row per worker, so no two threads write the same place (a
-    worker per thread, each taking blocks of rays in turn: ``in_turn``);
-    ``hits[row]`` gets ray ``row``'s hit cell (column-major index) or -1.
+    ``grid`` is the grid's ``GridArrays``. ``free`` (n_cells,) uint8: the
+    flags, shared by the ``workers`` (one per thread, each taking blocks of
+    rays in turn: ``in_turn``); ``hits[row]`` gets ray ``row``'s hit cell
+    (column-major index) or -1.
     ``walk``: the rays to walk, ``WALK_ALL``, ``WALK_SAMPLES`` or
     ``WALK_OTHERS`` (``coarse`` and ``first`` tell a sample: ``is_sample``),
     each in row order. A ray may start on sphere
@@ -506,10 +514,8 @@ def mark_scan(origin, points, max_range, grid, free, hits, walk, coarse, first, 
     skipped = 0
     ended = 0
     straight = 0
-    workers = free.shape[0]
     step, n_blocks, counter = in_turn(n_rays, workers, BLOCK)
     for worker in prange(workers):
-        row_free = free[worker]
         times = np.empty((3, size), dtype=np.float64)
         zones = np.empty((3, size), dtype=np.int64)
         lookups = np.empty(8, dtype=np.int64)
@@ -546,13 +552,13 @@ def mark_scan(origin, points, max_range, grid, free, hits, walk, coarse, first, 
                                             margin, grid):
                             # Whole shells from the start sphere to the end cell.
                             for shell in range(start, i + (not is_hit)):
-                                row_free[cell - i + shell] = 1
+                                store_relaxed(free, cell - i + shell, FREE)
                             if is_hit:
                                 hits[row] = cell
                             straight += 1
                             continue
                 hits[row] = walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, ir, jt, kp, grid,
-                                     times, zones, lookups, row_free, start)
+                                     times, zones, lookups, free, start)
             block = take(counter, n_blocks)
     return skipped, ended, straight
 
@@ -798,31 +804,28 @@ def columns_in_view(origin, grid, rays, view):
 
 
 @jit(parallel=True)
-def near_masks(free, words, n_rho, skip, view, masks):
-    """Bit i of ``masks[column]``: a thread flagged cell (i, column), for i < ``skip``.
+def near_masks(words, n_rho, skip, view, masks, workers):
+    """Bit i of ``masks[column]``: cell (i, column) is flagged, for i < ``skip``.
 
     Only columns in ``view`` are read (no ray meets the others), in blocks
-    taken in turn (``in_turn``). ``words`` is ``free`` seen as uint64: eight
-    cells with no flag are passed over at once.
+    that the ``workers`` take in turn (``in_turn``). ``words`` are the flags
+    (a byte per cell, column-major) seen as uint64: eight cells with no flag
+    are passed over at once.
     """
-    threads = free.shape[0]
     n_columns = masks.shape[0]
-    step, n_blocks, counter = in_turn(n_columns, threads, BLOCK)
-    for worker in prange(threads):
+    step, n_blocks, counter = in_turn(n_columns, workers, BLOCK)
+    for worker in prange(workers):
         block = take(counter, n_blocks)
         while block >= 0:
             for column in range(block * step, min(n_columns, (block + 1) * step)):
                 mask = np.uint64(0)
                 i = 0
                 while i < (skip if view[column] else 0):
-                    # The word holding cell i, every thread's flags OR-ed: its
-                    # bytes (little-endian) are the cells from ``index`` to the
-                    # word's end.
+                    # The word holding cell i: its bytes (little-endian) are
+                    # the cells from ``index`` to the word's end.
                     index = column * n_rho + i
                     word = index // 8
-                    flags = words[0, word]
-                    for thread in range(1, threads):
-                        flags |= words[thread, word]
+                    flags = words[word]
                     if flags != 0:
                         for cell in range(index, min(word * 8 + 8, column * n_rho + skip)):
                             if (flags >> np.uint64(8 * (cell - word * 8))) & np.uint64(0xFF):
@@ -1049,28 +1052,24 @@ def _update(log_odds, cell, hit, free, log_hit, log_miss, log_min, log_max):
 
 @jit(inline="always")
 def _apply_word(log_odds, words, word, n_rho, n_columns, log_hit, log_miss, log_min, log_max):
-    """``apply_scan`` for the eight cells of ``word``: update those any thread
-    flagged, then clear the word in every thread's row."""
-    threads = words.shape[0]
-    any_bits = words[0, word]
-    for thread in range(1, threads):
-        any_bits |= words[thread, word]
+    """``apply_scan`` for the eight cells of ``word``: update those flagged,
+    then clear the word."""
+    any_bits = words[word]
     if any_bits == 0:
         return
     n_cells = n_columns * n_rho
     for index in range(word * 8, min(word * 8 + 8, n_cells)):
         # Byte ``index - 8 word`` of the word (little-endian, as every
-        # platform Numba runs on): every thread's flags of the cell at once.
+        # platform Numba runs on): the cell's flag.
         bits = np.uint8((any_bits >> np.uint64(8 * (index - word * 8))) & np.uint64(0xFF))
         if bits != 0:
             i = index % n_rho
             _update(log_odds, i * n_columns + index // n_rho, (bits & HIT) != 0,
                     (bits & FREE) != 0, log_hit, log_miss, log_min, log_max)
-    # Cleared only here, for words that held flags: clearing in the OR
-    # loop above made it branch on every word, most of them zero (apply
+    # Cleared only here, for words that held flags: clearing every word
+    # read made the pass branch on every word, most of them zero (apply
     # 1.5 -> 2.6 ms on one thread, table scan 10 cm off).
-    for thread in range(threads):
-        words[thread, word] = 0
+    words[word] = 0
 
 
 @jit(inline="always")
@@ -1086,38 +1085,35 @@ def _first_word_of(column, n_rho, view):
 
 
 @jit(parallel=True)
-def apply_scan(log_odds, free, words, hits, n_rho, view, log_hit, log_miss, log_min, log_max):
+def apply_scan(log_odds, free, words, hits, n_rho, view, log_hit, log_miss, log_min, log_max,
+               workers):
     """OctoMap's update, once per cell per scan: a hit wins over a miss; clamped.
 
     ``free`` is indexed column-major, ``(j * n_phi + k) * n_rho + i``, so that
     a ray's run of shells in one column is one cache line rather than a page
     apart each (the map is ``(i * n_theta + j) * n_phi + k``). The walk only
     stores to it: a load-test-store per cell to list the cells it met cost
-    more than this pass. ``words`` is ``free`` seen as uint64 (rows padded to
-    a multiple of 8 bytes): most of a scan's cells are untouched, and eight
-    at a time are skipped with one test.
+    more than this pass. ``words`` is ``free`` seen as uint64 (padded to a
+    multiple of 8 bytes): most of a scan's cells are untouched, and eight at
+    a time are skipped with one test.
 
     Only the columns in ``view`` (a byte per column) are read: no ray of the
-    scan meets the others, so their flags are zero. Every thread's row is
-    read there, so this keeps the reading from growing with the threads
-    over the whole map (16 rows of 4 MB on the benchmark's map). A word
-    that spans two columns is read once, by the first of them in view.
-    Blocks of columns are taken in turn (``in_turn``): the columns in view
-    lie together.
+    scan meets the others, so their flags are zero. A word that spans two
+    columns is read once, by the first of them in view. The ``workers`` take
+    blocks of columns in turn (``in_turn``): the columns in view lie
+    together.
 
-    The hits go into row 0 first, on all threads: ``HIT`` replaces the byte,
-    since a hit wins over a miss, and rays that end in one cell store the
-    same value there (``atomic.store_relaxed``). The flags are left zero,
-    ready for the next scan: only words that were not are written.
+    The hits go in first, on all threads: ``HIT`` replaces the byte, since a
+    hit wins over a miss, and rays that end in one cell store the same value
+    there (``atomic.store_relaxed``). The flags are left zero, ready for the
+    next scan: only words that were not are written.
     """
-    first = free[0]
     n_rays = hits.shape[0]
     n_cells = log_odds.shape[0]
     for block in prange((n_rays + BLOCK - 1) // BLOCK):
         for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             if 0 <= hits[ray] < n_cells:  # -1: no hit (the bound: no store outside the map)
-                store_relaxed(first, hits[ray], HIT)
-    workers = free.shape[0]
+                store_relaxed(free, hits[ray], HIT)
     n_columns = log_odds.shape[0] // n_rho
     step, n_blocks, counter = in_turn(n_columns, workers, BLOCK)
     for worker in prange(workers):
