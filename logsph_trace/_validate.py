@@ -498,13 +498,23 @@ def available_memory():
     return min(limits) if limits else None
 
 
+# A request below this many bytes is not checked by ``fits``: reading the
+# available memory (/proc and the cgroup's files) costs about 0.08 ms, 3% of
+# a 1,000-ray cone on one thread and more of it on many, and a machine that
+# cannot spare this much fails in numpy's own allocation anyway.
+SMALL_REQUEST_BYTES = 1 << 24
+
+
 def fits(name, nbytes, what):
     """Raise ``MemoryError`` naming ``name`` before allocating ``nbytes`` that cannot fit.
 
     Checked against :func:`available_memory`, so a request that is bound to
     fail does so at once with a message, not after minutes of swapping or
-    with the process killed silently by the kernel.
+    with the process killed silently by the kernel. Requests under
+    ``SMALL_REQUEST_BYTES`` (16 MiB) pass unchecked.
     """
+    if nbytes < SMALL_REQUEST_BYTES:
+        return
     free = available_memory()
     if free is not None and nbytes > free:
         raise MemoryError(

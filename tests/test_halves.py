@@ -112,6 +112,7 @@ def test_a_reservation_that_does_not_fit_in_memory_is_not_made(monkeypatch):
     # Only a large reservation is checked (reading the figure costs ~0.1 ms),
     # and only a large batch is split: both thresholds down to this one.
     monkeypatch.setattr(_batching, "CHECKED_BYTES", 0)
+    monkeypatch.setattr(_validate, "SMALL_REQUEST_BYTES", 0)
     monkeypatch.setattr(_batching, "PARALLEL_MIN_RAYS", 512)
     monkeypatch.setattr(_validate, "available_memory", lambda: 10_000)
     assert exact_halves(grid, origins, directions) is None

@@ -399,11 +399,27 @@ def test_an_occupancy_map_counts_its_labels_in_the_memory_it_needs(monkeypatch):
     grid = lt.Grid(0.3, 10, 8, 12, 6)
     n_cells = 8 * 12 * 6
     without_labels = n_cells * (4 + 1)
+    monkeypatch.setattr(_validate, "SMALL_REQUEST_BYTES", 0)  # this map is small
     monkeypatch.setattr(_validate, "available_memory", lambda: without_labels + 100)
     with pytest.raises(MemoryError, match=r"grid: an occupancy map of \(8, 12, 6\) cells"):
         OccupancyGrid(grid)
     monkeypatch.setattr(_validate, "available_memory", lambda: without_labels + 4 * n_cells)
     OccupancyGrid(grid)
+
+
+def test_only_requests_of_16_mib_or_more_read_the_available_memory(monkeypatch):
+    # Reading it costs about 0.08 ms a call, a share of a small cone's time.
+    from logsph_trace import _validate
+
+    def unread():
+        raise AssertionError("the available memory was read")
+
+    monkeypatch.setattr(_validate, "available_memory", unread)
+    _validate.fits("n_rays", (1 << 24) - 1, "a request")
+    lt.trace_cone(SMALL, [0, 0, 0], [0, 0, 1], 0.05, n_rays=300)
+    monkeypatch.setattr(_validate, "available_memory", lambda: (1 << 24) - 1)
+    with pytest.raises(MemoryError, match="n_rays: a request needs about 0.0 GiB"):
+        _validate.fits("n_rays", 1 << 24, "a request")
 
 
 def test_a_large_cone_scratch_is_released(monkeypatch):
