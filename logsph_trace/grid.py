@@ -201,7 +201,8 @@ class Grid:
             rho_edges=rho_edges, theta_edges=theta_edges, phi_edges=phi_edges, spacing=spacing,
             rho_kind=int(rho_kind), theta_kind=int(theta_kind), phi_kind=int(phi_kind),
             theta_full=bool(theta_edges[-1] - theta_edges[0] >= 2 * np.pi),
-            # the narrowest cell's angle, theta or phi (a scan's plan reads it)
+            # the narrowest cell's angle, theta or phi (a scan's plan and a cone's ray
+            # count read it)
             _narrowest_angle=float(min(np.min(np.diff(theta_edges)), np.min(np.diff(phi_edges)))),
         )
         for name, value in fields.items():
