@@ -504,6 +504,35 @@ _scratch = threading.local()
 KEEP_SCRATCH_SEGMENTS = 1 << 22
 
 
+# A cone's per-chunk copies of its boxes (``kernels.cone._boxes``) are kept
+# for the next call up to this many boxes and chunks (24 bytes each, 48 MB).
+KEEP_BOXES = 1 << 21
+
+
+def box_pools():
+    """Return this Python thread's scratch for a cone's boxes.
+
+    A (float64, int64) pair of arrays, empty until :func:`keep_box_pools`
+    sizes them.
+    """
+    held = getattr(_scratch, "boxes", None)
+    if held is None:
+        held = (np.empty(0), np.empty(0, dtype=np.int64))
+    return held
+
+
+def keep_box_pools(needed):
+    """Size this Python thread's box scratch for ``needed`` boxes and chunks.
+
+    ``needed`` is the kernels' count; the float64 pool holds twice as many
+    values. A quarter is added to spare; nothing changes when the scratch
+    holds enough already, or when ``needed`` passes ``KEEP_BOXES``.
+    """
+    if box_pools()[1].shape[0] < needed <= KEEP_BOXES:
+        size = needed + needed // 4
+        _scratch.boxes = (np.empty(2 * size), np.empty(size, dtype=np.int64))
+
+
 def scratch_segments(length, kind="segments", keep=False):
     """Segment arrays reused by this Python thread, grown as needed; one set per ``kind``.
 

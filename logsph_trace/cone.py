@@ -26,9 +26,13 @@ MIN_DEFAULT_RAYS = 16
 MAX_DEFAULT_RAYS = 1_000_000
 # A cone's rays are traced and aggregated in chunks of at least this many, at
 # most CONE_CHUNKS of them, whatever the thread count: the order of the weight
-# sums, and so their last bits, do not depend on the machine.
-CONE_CHUNK_RAYS = 64
-CONE_CHUNKS = 8
+# sums, and so their last bits, do not depend on the machine. A chunk is one
+# thread's work, so the count caps the threads a cone can use: 16 from 512
+# rays on, 7 for the default 225-ray gaze cone (8 chunks of 64 rays held a
+# 1,000-ray cone to 8 threads). Each chunk sums into its own copy of the
+# cone's boxes (24 bytes a box: 70 kB for a 5-degree cone, 1 MB at 23 degrees).
+CONE_CHUNK_RAYS = 32
+CONE_CHUNKS = 16
 
 
 @dataclass(frozen=True)
@@ -243,14 +247,17 @@ def aggregate_cells(grid, offsets, cells, t_enter, axis, weights, chunks=None, f
         starts, firsts = chunks[0], chunks[1][:-1]
     firsts = np.ascontiguousarray(firsts)
     j_shift = theta_shift(grid, axis)
+    pool, ray_pool = batching.box_pools()
     if fixation is None:
-        cells, weights, t_first = _cone.aggregate_boxes(
-            offsets, starts, firsts, cells, t_enter, weights, grid.n_rho, grid.n_theta, j_shift)
+        cells, weights, t_first, needed = _cone.aggregate_boxes(
+            offsets, starts, firsts, cells, t_enter, weights, grid.n_rho, grid.n_theta, j_shift,
+            pool, ray_pool)
     else:
         t_exit, log_odds, min_distance, unknown, free_below = fixation
-        cells, weights, t_first = _cone.fixation_boxes(
+        cells, weights, t_first, needed = _cone.fixation_boxes(
             offsets, starts, firsts, cells, t_enter, t_exit, weights, log_odds, grid.n_theta,
-            grid.n_phi, min_distance, unknown, free_below, j_shift)
+            grid.n_phi, min_distance, unknown, free_below, j_shift, pool, ray_pool)
+    batching.keep_box_pools(int(needed))
     return by_first_reach(cells, weights, t_first, normalise=fixation is None)
 
 

@@ -136,6 +136,38 @@ def test_reused_scratch_does_not_change_earlier_results():
     assert set(map(tuple, small.cells.tolist())) == set(weights)
 
 
+def test_a_cones_boxes_in_reused_scratch_equal_fresh_ones(monkeypatch):
+    # The chunks' copies of the boxes come from this thread's kept scratch
+    # once it is large enough: from none, from too little, from enough, and
+    # with keeping off, the cones and their fixation are the same bit for bit.
+    from logsph_trace import _batching
+
+    occupancy = lt.OccupancyGrid(GRID)
+    occupancy.integrate(ORIGIN + np.array([[0.5, -1.6, 6.0], [-0.4, -1.2, 5.0]]), ORIGIN)
+    calls = [lambda angle: trace_cone(GRID, ORIGIN, GAZE, angle, n_rays=700),
+             lambda angle: lt.fixation_probability(occupancy, ORIGIN, GAZE, half_angle=angle,
+                                                   n_rays=700)]
+
+    def results():
+        return [(c.cells, c.weights, c.t_first) if hasattr(c, "weights") else
+                (c.cells, c.values, c.t_enter) for c in (call(angle) for call in calls
+                                                         for angle in (0.02, 0.3, 0.02))]
+
+    monkeypatch.setattr(_batching, "_scratch", type(_batching._scratch)())
+    kept = results()  # from none, then too little for the wide cone, then enough
+    pool = _batching.box_pools()[1]
+    assert pool.size > 0
+    results()
+    assert _batching.box_pools()[1] is pool  # enough: not made again
+    monkeypatch.setattr(_batching, "KEEP_BOXES", 0)
+    monkeypatch.setattr(_batching, "_scratch", type(_batching._scratch)())
+    fresh = results()
+    assert _batching.box_pools()[1].size == 0
+    for one, other in zip(kept, fresh):
+        for a, b in zip(one, other):
+            np.testing.assert_array_equal(a, b)
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [
