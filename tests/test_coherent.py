@@ -344,6 +344,43 @@ def _bin_cone(bins, q, workers=None):
     return cone
 
 
+def _cube_bins(offsets, q):
+    """Plain cube-map bins of directions ``offsets`` (none zero): the face of the
+    largest |component| (ties to the earlier axis; 1 more for the negative
+    half), the two other components over it, each cut into ``q`` bins."""
+    size = np.abs(offsets)
+    axis = np.where((size[:, 0] >= size[:, 1]) & (size[:, 0] >= size[:, 2]), 0,
+                    np.where(size[:, 1] >= size[:, 2], 1, 2))
+    rows = np.arange(offsets.shape[0])
+    major = offsets[rows, axis]
+    face = 2 * axis + (major <= 0)
+    others = np.array([[1, 2], [0, 2], [0, 1]])[axis]
+    u = offsets[rows, others[:, 0]] / np.abs(major)
+    v = offsets[rows, others[:, 1]] / np.abs(major)
+    index = [np.clip(((w + 1.0) * 0.5 * q).astype(np.int64), 0, q - 1) for w in (u, v)]
+    return (face * q + index[0]) * q + index[1]
+
+
+def test_rays_are_binned_by_their_cube_map_face_and_position():
+    # Random directions, and ties of the largest components (the face of the
+    # earlier axis), signed zeros, the axes and the cube's corners and edges.
+    rng = np.random.default_rng(61)
+    origin = np.zeros(3)  # the offsets as given: ties stay ties
+    offsets = rng.normal(size=(3000, 3))
+    ties = rng.choice([-1.0, 1.0], size=(600, 3)) * rng.uniform(0.1, 2.0, (600, 1))
+    ties[:200, 2] *= rng.uniform(0.0, 1.0, 200)  # |x| = |y| > |z|
+    ties[200:400, 0] *= rng.uniform(0.0, 1.0, 200)  # |y| = |z| > |x|
+    axes = np.vstack([np.eye(3), -np.eye(3), [[-0.0, 0.0, 2.0], [0.0, -0.0, -3.0]]])
+    offsets = np.vstack([offsets, ties, axes])
+    points = origin + offsets
+    for q, coarse_q in ((306, 153), (7, 3), (1, 1)):
+        bins, coarse = (np.empty(points.shape[0], dtype=np.int64) for _ in range(2))
+        kernels.bin_rays(origin, points, q, coarse_q, bins, coarse,
+                         np.empty(6 * coarse_q * coarse_q, dtype=np.int64))
+        np.testing.assert_array_equal(bins, _cube_bins(offsets, q))
+        np.testing.assert_array_equal(coarse, _cube_bins(offsets, coarse_q))
+
+
 def test_each_coarse_bins_first_ray_is_its_sample_on_any_number_of_threads():
     rng = np.random.default_rng(67)
     origin = np.array([0.06, 0.08, 0.0])

@@ -576,16 +576,18 @@ def mark_scan(origin, points, max_range, grid, free, hits, walk, coarse, first, 
 
 
 @jit(inline="always")
-def _face_of(x, y, z):
-    """Cube-map face of direction (x, y, z) (not all zero)."""
+def _face_uv(x, y, z):
+    """Cube-map face of direction (x, y, z) (not all zero) and its (u, v) there:
+    ``_on_face`` of that face, from the one set of comparisons (a fifth of
+    ``bin_rays``' time went to choosing the face twice)."""
     ax = abs(x)
     ay = abs(y)
     az = abs(z)
     if ax >= ay and ax >= az:
-        return 0 if x > 0.0 else 1
+        return (0 if x > 0.0 else 1), y / ax, z / ax
     if ay >= az:
-        return 2 if y > 0.0 else 3
-    return 4 if z > 0.0 else 5
+        return (2 if y > 0.0 else 3), x / ay, z / ay
+    return (4 if z > 0.0 else 5), x / az, y / az
 
 
 @jit(inline="always")
@@ -634,8 +636,7 @@ def bin_rays(origin, points, q, q_coarse, bins, coarse, first):
                 bins[row] = -1
                 coarse[row] = -1
             else:
-                face = _face_of(x, y, z)
-                _, u, v = _on_face(face, x, y, z)
+                face, u, v = _face_uv(x, y, z)
                 bins[row] = (face * q + _bin_of(u, q)) * q + _bin_of(v, q)
                 b = (face * q_coarse + _bin_of(u, q_coarse)) * q_coarse + _bin_of(v, q_coarse)
                 coarse[row] = b
