@@ -267,6 +267,12 @@ def theta_shift(grid, axis):
     return (grid.n_theta // 2 - max(int(j_axis), 0)) % grid.n_theta
 
 
+def theta_shifts(grid, axes):
+    """:func:`theta_shift` of each of the directions ``axes`` (c, 3), as an int64 array."""
+    j_axes = grid.cell_of(grid.rho_max * 0.5 * axes)[:, 1].astype(np.int64)
+    return (grid.n_theta // 2 - np.maximum(j_axes, 0)) % grid.n_theta
+
+
 def by_first_reach(cells, weights, t_first, normalise):
     """Sort a cone's aggregated cells by first reach (ties stay in the order given).
 
@@ -428,15 +434,30 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     all_origins = np.repeat(origins, counts, axis=0)
     all_directions = np.concatenate([sample[0] for sample in samples])
     traces = trace_given_rays(grid, all_origins, all_directions)
+    # Every cone aggregated in one parallel call, each in the chunks trace_cone
+    # cuts it into: the same cells and sums as one at a time, bit for bit.
+    cone_rays = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    bounds = np.concatenate([chunk_starts(count) + start
+                             for count, start in zip(counts, cone_rays)])
+    cone_bounds = np.concatenate([[0], np.cumsum([len(chunk_starts(count)) for count in counts])])
+    pool, ray_pool = batching.box_pools()
+    cells, weights, t_first, at, found, needed = _cone.aggregate_cones(
+        traces.offsets, cone_rays, bounds, cone_bounds.astype(np.int64), traces.cells,
+        traces.t_enter, np.concatenate([sample[1] for sample in samples]), grid.n_rho,
+        grid.n_theta, theta_shifts(grid, np.array([sample[0][0] for sample in samples])), pool,
+        ray_pool)
+    batching.keep_box_pools(int(needed))
     results = []
-    first = 0
-    for (cone_directions_, ray_weights), count in zip(samples, counts):
-        lo, hi = traces.offsets[first], traces.offsets[first + count]
-        own = Traces(traces.offsets[first:first + count + 1] - lo, traces.cells[lo:hi],
+    for cone, (cone_directions_, ray_weights) in enumerate(samples):
+        first, end = cone_rays[cone], cone_rays[cone + 1]
+        lo, hi = traces.offsets[first], traces.offsets[end]
+        own = Traces(traces.offsets[first:end + 1] - lo, traces.cells[lo:hi],
                      traces.t_enter[lo:hi], traces.t_exit[lo:hi])
-        cells, weights, t_first = aggregate_cells(grid, own.offsets, own.cells, own.t_enter,
-                                             cone_directions_[0], ray_weights)
-        results.append(ConeTrace(cells, weights, t_first, cone_directions_, ray_weights,
-                                 origins[len(results)], grid, own))
-        first += count
+        rows = slice(at[cone], at[cone] + found[cone])
+        cone_weights = weights[rows]
+        total = cone_weights.sum()  # as by_first_reach sums them
+        if total > 0:
+            cone_weights = cone_weights / total
+        results.append(ConeTrace(cells[rows], cone_weights, t_first[rows], cone_directions_,
+                                 ray_weights, origins[cone], grid, own))
     return results

@@ -23,6 +23,20 @@ def shifted(j, j_shift, n_theta):
 
 
 @jit(inline="always")
+def _extents_of(seg_from, seg_to, cells, n_theta, j_shift, low_j, high_j, low_k, high_k):
+    """Widen the per-shell extents (n_rho,) of shifted theta and phi indices to
+    hold segments ``seg_from:seg_to``."""
+    for seg in range(seg_from, seg_to):
+        i = cells[seg, 0]
+        j = shifted(cells[seg, 1], j_shift, n_theta)
+        k = np.int64(cells[seg, 2])
+        low_j[i] = min(low_j[i], j)
+        high_j[i] = max(high_j[i], j)
+        low_k[i] = min(low_k[i], k)
+        high_k[i] = max(high_k[i], k)
+
+
+@jit(inline="always")
 def _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
     """Per shell, the (theta, phi) box the chunks' segments fill, laid end to end.
 
@@ -40,14 +54,8 @@ def _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
     low_k = np.full((n_chunks, n_rho), big, dtype=np.int64)
     high_k = np.full((n_chunks, n_rho), -1, dtype=np.int64)
     for chunk in prange(n_chunks):
-        for seg in range(firsts[chunk], offsets[starts[chunk + 1]]):
-            i = cells[seg, 0]
-            j = shifted(cells[seg, 1], j_shift, n_theta)
-            k = np.int64(cells[seg, 2])
-            low_j[chunk, i] = min(low_j[chunk, i], j)
-            high_j[chunk, i] = max(high_j[chunk, i], j)
-            low_k[chunk, i] = min(low_k[chunk, i], k)
-            high_k[chunk, i] = max(high_k[chunk, i], k)
+        _extents_of(firsts[chunk], offsets[starts[chunk + 1]], cells, n_theta, j_shift,
+                    low_j[chunk], high_j[chunk], low_k[chunk], high_k[chunk])
     for i in range(n_rho):  # n_rho x n_chunks values: too few to share out
         for chunk in range(1, n_chunks):
             low_j[0, i] = min(low_j[0, i], low_j[chunk, i])
@@ -137,36 +145,51 @@ def _box_cells(weight, first, last_ray, low_j, low_k, span_k, base, n_theta, j_s
     each chunk's value was a row (a cache line) away from the last, and with
     1,000 rays on one thread the sum took about 55 us more per chunk.
     """
-    n_chunks = weight.shape[0]
     n_rho = base.shape[0] - 1
     reached = np.zeros(n_rho + 1, dtype=np.int64)  # per shell, then where each shell's start
     for i in prange(n_rho):
-        for chunk in range(1, n_chunks):
-            for box in range(base[i], base[i + 1]):
-                weight[0, box] += weight[chunk, box]
-                first[0, box] = min(first[0, box], first[chunk, box])
-                last_ray[0, box] = max(last_ray[0, box], last_ray[chunk, box])
-        count = 0
-        for box in range(base[i], base[i + 1]):
-            count += last_ray[0, box] != -1
-        reached[i + 1] = count
+        reached[i + 1] = _merge_shell(weight, first, last_ray, base, i)
     for i in range(n_rho):
         reached[i + 1] += reached[i]
     out_cells = np.empty((reached[n_rho], 3), dtype=np.int32)
     out_weight = np.empty(reached[n_rho])
     out_first = np.empty(reached[n_rho])
     for i in prange(n_rho):
-        found = reached[i]
-        for box in range(base[i], base[i + 1]):
-            if last_ray[0, box] == -1:
-                continue
-            out_cells[found, 0] = i
-            out_cells[found, 1], out_cells[found, 2] = unbox(box, i, low_j, low_k, span_k, base,
-                                                            n_theta, j_shift)
-            out_weight[found] = weight[0, box]
-            out_first[found] = first[0, box]
-            found += 1
+        _write_shell(weight, first, last_ray, low_j, low_k, span_k, base, n_theta, j_shift, i,
+                     reached[i], out_cells, out_weight, out_first)
     return out_cells, out_weight, out_first
+
+
+@jit(inline="always")
+def _merge_shell(weight, first, last_ray, base, i):
+    """Sum shell ``i``'s boxes of every chunk into chunk 0's, in chunk order;
+    return how many some ray reached."""
+    for chunk in range(1, weight.shape[0]):
+        for box in range(base[i], base[i + 1]):
+            weight[0, box] += weight[chunk, box]
+            first[0, box] = min(first[0, box], first[chunk, box])
+            last_ray[0, box] = max(last_ray[0, box], last_ray[chunk, box])
+    count = 0
+    for box in range(base[i], base[i + 1]):
+        count += last_ray[0, box] != -1
+    return count
+
+
+@jit(inline="always")
+def _write_shell(weight, first, last_ray, low_j, low_k, span_k, base, n_theta, j_shift, i, at,
+                 out_cells, out_weight, out_first):
+    """Write shell ``i``'s reached boxes (merged into chunk 0), in box order,
+    from row ``at`` of the outputs on; return the row after the last."""
+    for box in range(base[i], base[i + 1]):
+        if last_ray[0, box] == -1:
+            continue
+        out_cells[at, 0] = i
+        out_cells[at, 1], out_cells[at, 2] = unbox(box, i, low_j, low_k, span_k, base, n_theta,
+                                                   j_shift)
+        out_weight[at] = weight[0, box]
+        out_first[at] = first[0, box]
+        at += 1
+    return at
 
 
 @jit(parallel=True)
@@ -194,17 +217,108 @@ def aggregate_boxes(offsets, starts, firsts, cells, t_enter, weights, n_rho, n_t
     (low_j, low_k, span_k, base), weight, first, last_ray, needed = _boxes(
         offsets, starts, firsts, cells, n_rho, n_theta, j_shift, pool, ray_pool)
     for chunk in prange(starts.shape[0] - 1):
-        for ray in range(starts[chunk], starts[chunk + 1]):
-            begin = firsts[chunk] if ray == starts[chunk] else offsets[ray]
-            for seg in range(begin, offsets[ray + 1]):
-                box = box_of(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift)
-                # Branch-free: a ray re-entering a cell counts once; first reach is a min.
-                weight[chunk, box] += weights[ray] * (last_ray[chunk, box] != ray)
-                last_ray[chunk, box] = ray
-                first[chunk, box] = min(first[chunk, box], t_enter[seg])
+        _add_rays(offsets, starts[chunk], starts[chunk + 1], firsts[chunk], cells, t_enter,
+                  weights, low_j, low_k, span_k, base, n_theta, j_shift, weight[chunk],
+                  first[chunk], last_ray[chunk])
     out_cells, out_weight, out_first = _box_cells(weight, first, last_ray, low_j, low_k, span_k,
                                                   base, n_theta, j_shift)
     return out_cells, out_weight, out_first, needed
+
+
+@jit(inline="always")
+def _add_rays(offsets, ray_from, ray_to, first_seg, cells, t_enter, weights, low_j, low_k,
+              span_k, base, n_theta, j_shift, weight, first, last_ray):
+    """Add rays ``ray_from:ray_to`` to one chunk's boxes (``weight``, ``first``,
+    ``last_ray``: its rows); the first ray's segments begin at ``first_seg``."""
+    for ray in range(ray_from, ray_to):
+        begin = first_seg if ray == ray_from else offsets[ray]
+        for seg in range(begin, offsets[ray + 1]):
+            box = box_of(cells, seg, low_j, low_k, span_k, base, n_theta, j_shift)
+            # Branch-free: a ray re-entering a cell counts once; first reach is a min.
+            weight[box] += weights[ray] * (last_ray[box] != ray)
+            last_ray[box] = ray
+            first[box] = min(first[box], t_enter[seg])
+
+
+@jit(parallel=True)
+def aggregate_cones(offsets, cone_rays, bounds, cone_bounds, cells, t_enter, weights, n_rho,
+                    n_theta, j_shifts, pool, ray_pool):
+    """``aggregate_boxes`` for many cones at once, each sorted by first reach.
+
+    The rays' packed CSR ``offsets``, ``cells``, ``t_enter`` and ``weights``
+    are the cones' in turn: cone ``c``'s rays are ``cone_rays[c]:cone_rays[c
+    + 1]``, cut into chunks at ``bounds[cone_bounds[c]:cone_bounds[c + 1]]``
+    (ray indices, the cone's first and end included), azimuths shifted by
+    ``j_shifts[c]``. Each cone is one ``prange`` iteration: its chunks are
+    summed in order as ``aggregate_boxes`` sums them, so every cone's cells
+    and sums are the ones ``aggregate_boxes`` gives for it alone, bit for
+    bit, with no parallel call per cone. ``pool``, ``ray_pool``: scratch for
+    the chunks' boxes, as there.
+
+    Returns (cells (U, 3) int32, weights (U,), t_first (U,), at (c + 1,),
+    found (c,), needed): cone ``c``'s cells are rows ``at[c]:at[c] +
+    found[c]``, ordered by first reach (ties in box order, as a stable sort
+    of ``aggregate_boxes``' output puts them); its weights unnormalised.
+    """
+    n_cones = cone_rays.shape[0] - 1
+    big = np.iinfo(np.int64).max
+    low_j = np.full((n_cones, n_rho), big, dtype=np.int64)
+    high_j = np.full((n_cones, n_rho), -1, dtype=np.int64)
+    low_k = np.full((n_cones, n_rho), big, dtype=np.int64)
+    high_k = np.full((n_cones, n_rho), -1, dtype=np.int64)
+    for c in prange(n_cones):
+        _extents_of(offsets[cone_rays[c]], offsets[cone_rays[c + 1]], cells, n_theta,
+                    j_shifts[c], low_j[c], high_j[c], low_k[c], high_k[c])
+    span_k = np.empty((n_cones, n_rho), dtype=np.int64)
+    base = np.empty((n_cones, n_rho + 1), dtype=np.int64)
+    at = np.zeros(n_cones + 1, dtype=np.int64)  # where each cone's boxes, and cells, start
+    pool_at = np.zeros(n_cones + 1, dtype=np.int64)  # ... and its chunks' copies of them
+    for c in range(n_cones):
+        span_k[c], base[c] = box_bases(low_j[c], high_j[c], low_k[c], high_k[c])
+        at[c + 1] = at[c] + base[c, n_rho]
+        pool_at[c + 1] = pool_at[c] + (cone_bounds[c + 1] - cone_bounds[c] - 1) * base[c, n_rho]
+    needed = pool_at[n_cones]
+    if pool.shape[0] >= 2 * needed and ray_pool.shape[0] >= needed:
+        weight_all = pool[:needed]
+        first_all = pool[needed:2 * needed]
+        last_all = ray_pool[:needed]
+    else:
+        weight_all = np.empty(needed)
+        first_all = np.empty(needed)
+        last_all = np.empty(needed, dtype=np.int64)
+    out_cells = np.empty((at[n_cones], 3), dtype=np.int32)
+    out_weight = np.empty(at[n_cones])
+    out_first = np.empty(at[n_cones])
+    found = np.zeros(n_cones, dtype=np.int64)
+    for c in prange(n_cones):
+        n_chunks = cone_bounds[c + 1] - cone_bounds[c] - 1
+        size = base[c, n_rho]
+        weight = weight_all[pool_at[c]:pool_at[c + 1]].reshape((n_chunks, size))
+        first = first_all[pool_at[c]:pool_at[c + 1]].reshape((n_chunks, size))
+        last_ray = last_all[pool_at[c]:pool_at[c + 1]].reshape((n_chunks, size))
+        weight[:, :] = 0.0
+        first[:, :] = np.inf
+        last_ray[:, :] = -1
+        for chunk in range(n_chunks):
+            ray_from = bounds[cone_bounds[c] + chunk]
+            _add_rays(offsets, ray_from, bounds[cone_bounds[c] + chunk + 1], offsets[ray_from],
+                      cells, t_enter, weights, low_j[c], low_k[c], span_k[c], base[c], n_theta,
+                      j_shifts[c], weight[chunk], first[chunk], last_ray[chunk])
+        end = at[c]
+        for i in range(n_rho):
+            _merge_shell(weight, first, last_ray, base[c], i)
+            end = _write_shell(weight, first, last_ray, low_j[c], low_k[c], span_k[c], base[c],
+                               n_theta, j_shifts[c], i, end, out_cells, out_weight, out_first)
+        found[c] = end - at[c]
+        order = np.argsort(out_first[at[c]:end], kind="mergesort")  # stable
+        cells_now = out_cells[at[c]:end].copy()
+        weight_now = out_weight[at[c]:end].copy()
+        first_now = out_first[at[c]:end].copy()
+        for row in range(end - at[c]):
+            out_cells[at[c] + row] = cells_now[order[row]]
+            out_weight[at[c] + row] = weight_now[order[row]]
+            out_first[at[c] + row] = first_now[order[row]]
+    return out_cells, out_weight, out_first, at, found, needed
 
 
 @jit(inline="always")
