@@ -23,6 +23,15 @@ def shifted(j, j_shift, n_theta):
 
 
 @jit(inline="always")
+def _no_extents(rows, n_rho):
+    """``rows`` x ``n_rho`` empty extents for ``_extents_of``: (low_j, high_j,
+    low_k, high_k), the lows the largest int64, the highs -1."""
+    big = np.iinfo(np.int64).max
+    return (np.full((rows, n_rho), big, dtype=np.int64), np.full((rows, n_rho), -1, dtype=np.int64),
+            np.full((rows, n_rho), big, dtype=np.int64), np.full((rows, n_rho), -1, dtype=np.int64))
+
+
+@jit(inline="always")
 def _extents_of(seg_from, seg_to, cells, n_theta, j_shift, low_j, high_j, low_k, high_k):
     """Widen the per-shell extents (n_rho,) of shifted theta and phi indices to
     hold segments ``seg_from:seg_to``."""
@@ -48,11 +57,7 @@ def _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
     they are merged.
     """
     n_chunks = starts.shape[0] - 1
-    big = np.iinfo(np.int64).max
-    low_j = np.full((n_chunks, n_rho), big, dtype=np.int64)
-    high_j = np.full((n_chunks, n_rho), -1, dtype=np.int64)
-    low_k = np.full((n_chunks, n_rho), big, dtype=np.int64)
-    high_k = np.full((n_chunks, n_rho), -1, dtype=np.int64)
+    low_j, high_j, low_k, high_k = _no_extents(n_chunks, n_rho)
     for chunk in prange(n_chunks):
         _extents_of(firsts[chunk], offsets[starts[chunk + 1]], cells, n_theta, j_shift,
                     low_j[chunk], high_j[chunk], low_k[chunk], high_k[chunk])
@@ -261,11 +266,7 @@ def aggregate_cones(offsets, cone_rays, bounds, cone_bounds, cells, t_enter, wei
     of ``aggregate_boxes``' output puts them); its weights unnormalised.
     """
     n_cones = cone_rays.shape[0] - 1
-    big = np.iinfo(np.int64).max
-    low_j = np.full((n_cones, n_rho), big, dtype=np.int64)
-    high_j = np.full((n_cones, n_rho), -1, dtype=np.int64)
-    low_k = np.full((n_cones, n_rho), big, dtype=np.int64)
-    high_k = np.full((n_cones, n_rho), -1, dtype=np.int64)
+    low_j, high_j, low_k, high_k = _no_extents(n_cones, n_rho)
     for c in prange(n_cones):
         _extents_of(offsets[cone_rays[c]], offsets[cone_rays[c + 1]], cells, n_theta,
                     j_shifts[c], low_j[c], high_j[c], low_k[c], high_k[c])
