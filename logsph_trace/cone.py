@@ -263,14 +263,19 @@ def aggregate_cells(grid, offsets, cells, t_enter, axis, weights, chunks=None, f
 
 def theta_shift(grid, axis):
     """Return the azimuth shift that puts a cone around ``axis`` mid-seam (``kernels.cone``)."""
-    j_axis = grid.cell_of(grid.rho_max * 0.5 * axis)[1]
-    return (grid.n_theta // 2 - max(int(j_axis), 0)) % grid.n_theta
+    return int(theta_shifts(grid, np.reshape(axis, (1, 3)))[0])
 
 
 def theta_shifts(grid, axes):
     """:func:`theta_shift` of each of the directions ``axes`` (c, 3), as an int64 array."""
     j_axes = grid.cell_of(grid.rho_max * 0.5 * axes)[:, 1].astype(np.int64)
     return (grid.n_theta // 2 - np.maximum(j_axes, 0)) % grid.n_theta
+
+
+def _normalised(weights):
+    """``weights`` over their (numpy, pairwise) sum, or as they are when it is not positive."""
+    total = weights.sum()
+    return weights / total if total > 0 else weights
 
 
 def by_first_reach(cells, weights, t_first, normalise):
@@ -280,9 +285,8 @@ def by_first_reach(cells, weights, t_first, normalise):
     """
     order = np.argsort(t_first, kind="stable")
     weights = weights[order]
-    total = weights.sum()
-    if normalise and total > 0:
-        weights = weights / total
+    if normalise:
+        weights = _normalised(weights)
     # ``np.take`` along the rows: indexing an (n, 3) array by ``order`` costs 4x more.
     return np.take(cells, order, axis=0), weights, t_first[order]
 
@@ -437,12 +441,11 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     # Every cone aggregated in one parallel call, each in the chunks trace_cone
     # cuts it into: the same cells and sums as one at a time, bit for bit.
     cone_rays = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    bounds = np.concatenate([chunk_starts(count) + start
-                             for count, start in zip(counts, cone_rays)])
-    cone_bounds = np.concatenate([[0], np.cumsum([len(chunk_starts(count)) for count in counts])])
+    chunks = [chunk_starts(count) + start for count, start in zip(counts, cone_rays)]
+    cone_bounds = np.concatenate([[0], np.cumsum([len(c) for c in chunks])]).astype(np.int64)
     pool, ray_pool = batching.box_pools()
     cells, weights, t_first, at, found, needed = _cone.aggregate_cones(
-        traces.offsets, cone_rays, bounds, cone_bounds.astype(np.int64), traces.cells,
+        traces.offsets, cone_rays, np.concatenate(chunks), cone_bounds, traces.cells,
         traces.t_enter, np.concatenate([sample[1] for sample in samples]), grid.n_rho,
         grid.n_theta, theta_shifts(grid, np.array([sample[0][0] for sample in samples])), pool,
         ray_pool)
@@ -454,10 +457,6 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
         own = Traces(traces.offsets[first:end + 1] - lo, traces.cells[lo:hi],
                      traces.t_enter[lo:hi], traces.t_exit[lo:hi])
         rows = slice(at[cone], at[cone] + found[cone])
-        cone_weights = weights[rows]
-        total = cone_weights.sum()  # as by_first_reach sums them
-        if total > 0:
-            cone_weights = cone_weights / total
-        results.append(ConeTrace(cells[rows], cone_weights, t_first[rows], cone_directions_,
-                                 ray_weights, origins[cone], grid, own))
+        results.append(ConeTrace(cells[rows], _normalised(weights[rows]), t_first[rows],
+                                 cone_directions_, ray_weights, origins[cone], grid, own))
     return results

@@ -89,6 +89,17 @@ def box_bases(low_j, high_j, low_k, high_k):
 
 
 @jit(inline="always")
+def _box_copies(pool, ray_pool, needed):
+    """Flat scratch for ``needed`` boxes and chunks: (weights, first reaches,
+    last rays), from the caller's ``pool`` (float64, two values a box and
+    chunk) and ``ray_pool`` (int64, one) when they are large enough, else
+    allocated (see ``_boxes``)."""
+    if pool.shape[0] >= 2 * needed and ray_pool.shape[0] >= needed:
+        return pool[:needed], pool[needed:2 * needed], ray_pool[:needed]
+    return np.empty(needed), np.empty(needed), np.empty(needed, dtype=np.int64)
+
+
+@jit(inline="always")
 def _boxes(offsets, starts, firsts, cells, n_rho, n_theta, j_shift, pool, ray_pool):
     """The layout (``_box_layout``) and, per chunk, its empty boxes: summed
     value 0, first reach inf, last ray -1 (none). Each chunk's boxes are
@@ -106,14 +117,10 @@ def _boxes(offsets, starts, firsts, cells, n_rho, n_theta, j_shift, pool, ray_po
     n_chunks = starts.shape[0] - 1
     size = layout[3][n_rho]
     needed = n_chunks * size
-    if pool.shape[0] >= 2 * needed and ray_pool.shape[0] >= needed:
-        weight = pool[:needed].reshape((n_chunks, size))
-        first = pool[needed:2 * needed].reshape((n_chunks, size))
-        last_ray = ray_pool[:needed].reshape((n_chunks, size))
-    else:
-        weight = np.empty((n_chunks, size))
-        first = np.empty((n_chunks, size))
-        last_ray = np.empty((n_chunks, size), dtype=np.int64)
+    weight, first, last_ray = _box_copies(pool, ray_pool, needed)
+    weight = weight.reshape((n_chunks, size))
+    first = first.reshape((n_chunks, size))
+    last_ray = last_ray.reshape((n_chunks, size))
     for chunk in prange(n_chunks):
         for box in range(size):
             weight[chunk, box] = 0.0
@@ -279,14 +286,7 @@ def aggregate_cones(offsets, cone_rays, bounds, cone_bounds, cells, t_enter, wei
         at[c + 1] = at[c] + base[c, n_rho]
         pool_at[c + 1] = pool_at[c] + (cone_bounds[c + 1] - cone_bounds[c] - 1) * base[c, n_rho]
     needed = pool_at[n_cones]
-    if pool.shape[0] >= 2 * needed and ray_pool.shape[0] >= needed:
-        weight_all = pool[:needed]
-        first_all = pool[needed:2 * needed]
-        last_all = ray_pool[:needed]
-    else:
-        weight_all = np.empty(needed)
-        first_all = np.empty(needed)
-        last_all = np.empty(needed, dtype=np.int64)
+    weight_all, first_all, last_all = _box_copies(pool, ray_pool, needed)
     out_cells = np.empty((at[n_cones], 3), dtype=np.int32)
     out_weight = np.empty(at[n_cones])
     out_first = np.empty(at[n_cones])
