@@ -384,6 +384,26 @@ def half_angle(half_angle, name="half_angle"):
     return value
 
 
+def half_angles(name, values, count):
+    """Cone half-angles: one number or ``count`` of them, each as :func:`half_angle` checks it.
+
+    Returns a (count,) float64 array; warns once if any is above ``DEGREES_LIKELY``.
+    """
+    angles = real_array(name, values, "numbers of radians")
+    if angles.ndim > 1 or (angles.ndim == 1 and angles.shape[0] != count):
+        raise ValueError(f"{name} must be one number or one per cone ({count}), "
+                         f"got shape {angles.shape}")
+    angles = np.ascontiguousarray(np.broadcast_to(angles, (count,)))
+    bad = ~((angles >= 0.0) & (angles < np.pi / 2))  # NaN fails both
+    if np.any(bad):
+        row = int(np.argmax(bad))
+        raise ValueError(f"{name} must be in [0, pi/2) radians, got {angles[row]!r} "
+                         f"(cone {row})")
+    if count and angles.max() > DEGREES_LIKELY:
+        half_angle(angles.max(), name)  # its warning, for the widest
+    return angles
+
+
 def vector(name, value):
     """One 3-vector: shape (3,) (or (1, 3)), finite, returned as (3,) float64."""
     array = np.ascontiguousarray(_rows_of_three(name, value))

@@ -21,7 +21,6 @@ from .traces import Traces
 
 PATTERNS = ("fibonacci", "rings")
 WEIGHTINGS = ("gaussian", "uniform")
-GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 MIN_DEFAULT_RAYS = 16
 MAX_DEFAULT_RAYS = 1_000_000
 # A cone's rays are traced and aggregated in chunks of at least this many, at
@@ -88,24 +87,6 @@ class ConeTrace:
         return f"ConeTrace({len(self)} cells from {self.directions.shape[0]} rays)"
 
 
-def _cross(a, b):
-    """Return the cross product a x b of two 3-vectors of floats, as a tuple.
-
-    ``np.cross`` costs 15 us a call, a share of a small cone's time.
-    """
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _frame(axis):
-    """Two unit vectors completing ``axis`` to a right-handed orthonormal frame."""
-    axis = axis.tolist()
-    helper = (1.0, 0.0, 0.0) if abs(axis[0]) < 0.9 else (0.0, 1.0, 0.0)
-    first = _cross(axis, helper)
-    length = math.sqrt(first[0] * first[0] + first[1] * first[1] + first[2] * first[2])
-    first = tuple(value / length for value in first)
-    return np.array(first), np.array(_cross(axis, first))
-
-
 def cone_directions(axis, half_angle, n_rays, pattern="fibonacci"):
     """Sample unit directions inside a cone, with the angle of each from the axis.
 
@@ -127,40 +108,56 @@ def cone_directions(axis, half_angle, n_rays, pattern="fibonacci"):
     directions : numpy.ndarray, shape (n, 3)
     angles : numpy.ndarray, shape (n,)
     """
-    return _directions(validate.unit("axis", axis), validate.half_angle(half_angle), n_rays,
-                       pattern)
+    axis = validate.unit("axis", axis)
+    half_angle = validate.half_angle(half_angle)
+    count, rings = _ray_total(half_angle, n_rays, pattern)
+    directions, angles, _, _ = _sample(axis[None], np.array([half_angle]), [count], [rings],
+                                       pattern, np.zeros(1))
+    return directions, angles
 
 
-def _directions(axis, half_angle, n_rays, pattern):
-    """:func:`cone_directions` for a checked unit ``axis`` and ``half_angle``."""
+def _ray_total(half_angle, n_rays, pattern):
+    """Return the rays a cone of ``n_rays`` gets, and its rings (0 for ``"fibonacci"``).
+
+    One ray, the axis, if ``half_angle`` is 0 or one ray is asked for;
+    ``"rings"`` rounds up to fill its last ring.
+    """
     if pattern not in PATTERNS:
         raise ValueError(f"pattern must be one of {PATTERNS}, got {pattern!r}")
-    if isinstance(n_rays, bool) or not isinstance(n_rays, (int, np.integer)) or n_rays < 1:
+    if isinstance(n_rays, (bool, np.bool_)) or not isinstance(n_rays, (int, np.integer)) \
+            or n_rays < 1:
         raise ValueError(f"n_rays must be a positive integer, got {n_rays!r}")
     if half_angle == 0.0 or n_rays == 1:
-        return axis[None, :].copy(), np.zeros(1)
+        return 1, 0
+    if pattern == "fibonacci":
+        return int(n_rays), 0
+    rings = math.ceil((-3.0 + math.sqrt(9.0 + 12.0 * (int(n_rays) - 1))) / 6.0)
+    return 1 + 3 * rings * (rings + 1), rings
+
+
+def _sample(axes, half_angles, counts, rings, pattern, sigmas):
+    """Sample cones of unit ``axes`` (c, 3): ``counts`` rays each (``_ray_total``).
+
+    ``sigmas``: each cone's Gaussian width, 0 for uniform weights. Returns
+    (directions (n, 3), angles (n,), weights (n,), ray_at (c + 1,)): cone
+    ``c``'s rays are ``ray_at[c]:ray_at[c + 1]``, its weights summing to 1.
+    """
+    ray_at = np.zeros(len(counts) + 1, dtype=np.int64)
+    np.cumsum(counts, out=ray_at[1:])
+    n_rays = int(ray_at[-1])
     # The directions and their working arrays, then one trace each: at least 24
     # bytes more per ray for the origins and bounds, and 28 per segment.
-    validate.fits("n_rays", n_rays * 256, f"a cone of {n_rays:,} rays")
-    if pattern == "fibonacci":
-        index = np.arange(n_rays)
-        cos_angle = 1.0 - (1.0 - np.cos(half_angle)) * (index + 0.5) / n_rays
-        angles = np.arccos(np.clip(cos_angle, -1.0, 1.0))
-        around = index * GOLDEN_ANGLE
-    else:
-        rings = int(np.ceil((-3.0 + np.sqrt(9.0 + 12.0 * (n_rays - 1))) / 6.0))
-        angles = [0.0]
-        around = [0.0]
-        for ring in range(1, rings + 1):
-            count = 6 * ring
-            angles += [half_angle * ring / rings] * count
-            around += list(2.0 * np.pi * (np.arange(count) + 0.5 * (ring % 2)) / count)
-        angles = np.array(angles)
-        around = np.array(around)
-    first, second = _frame(axis)
-    sideways = np.cos(around)[:, None] * first + np.sin(around)[:, None] * second
-    directions = np.cos(angles)[:, None] * axis + np.sin(angles)[:, None] * sideways
-    return directions, angles
+    what = (f"a cone of {n_rays:,} rays" if len(counts) == 1
+            else f"{len(counts):,} cones of {n_rays:,} rays in all")
+    validate.fits("n_rays", n_rays * 256, what)
+    directions = np.empty((n_rays, 3))
+    angles = np.empty(n_rays)
+    weights = np.empty(n_rays)
+    _cone.sample_cones(np.ascontiguousarray(axes), np.ascontiguousarray(half_angles), ray_at,
+                       pattern == "fibonacci", np.asarray(rings, dtype=np.int64),
+                       np.ascontiguousarray(sigmas, dtype=np.float64), directions, angles,
+                       weights)
+    return directions, angles, weights, ray_at
 
 
 def default_ray_count(grid, origin, half_angle):
@@ -186,45 +183,63 @@ def _ray_count(grid, origin, half_angle):
     if half_angle == 0.0:
         return 1
     cell_width = grid.rho_max * grid._narrowest_angle  # the least theta or phi width
-    reach = np.linalg.norm(origin) + grid.rho_max
-    solid_angle = 2.0 * np.pi * (1.0 - np.cos(half_angle))
-    needed = int(np.ceil(2.0 * solid_angle * (reach / cell_width) ** 2))
-    return int(min(max(needed, MIN_DEFAULT_RAYS), MAX_DEFAULT_RAYS))
+    x, y, z = origin.tolist()
+    reach = math.sqrt(x * x + y * y + z * z) + grid.rho_max
+    solid_angle = 2.0 * math.pi * (1.0 - math.cos(half_angle))
+    needed = math.ceil(2.0 * solid_angle * (reach / cell_width) ** 2)
+    return min(max(needed, MIN_DEFAULT_RAYS), MAX_DEFAULT_RAYS)
 
 
-def _ray_weights(angles, half_angle, weighting, sigma):
+def _sigma(half_angle, weighting, sigma):
+    """Return a cone's Gaussian width for ``sample_cones``: 0 for uniform weights."""
     if weighting not in WEIGHTINGS:
         raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
     if weighting == "uniform" or half_angle == 0.0:
-        weights = np.ones(angles.shape[0])
-    else:
-        if sigma is None:
-            sigma = half_angle / 2.0  # the cone's edge at two standard deviations
-        sigma = validate.number("sigma", sigma, "a positive number of radians")
-        if not (np.isfinite(sigma) and sigma > 0.0):
-            raise ValueError(f"sigma must be a positive number of radians, got {sigma!r}")
-        # Relative to the ray nearest the axis, so a sigma far below the spacing
-        # of the rays cannot underflow every weight to 0 (and 0 / 0 to NaN).
-        exponent = -0.5 * (angles / sigma) ** 2
-        weights = np.exp(exponent - exponent.max())
-    return weights / weights.sum()
+        return 0.0
+    if sigma is None:
+        return half_angle / 2.0  # the cone's edge at two standard deviations
+    sigma = validate.number("sigma", sigma, "a positive number of radians")
+    if not (math.isfinite(sigma) and sigma > 0.0):
+        raise ValueError(f"sigma must be a positive number of radians, got {sigma!r}")
+    return sigma
 
 
 def sample_rays(grid, origin, direction, half_angle, n_rays, pattern, weighting, sigma):
     """Directions and weights of a cone's rays (``n_rays=None``: the default count)."""
     half_angle = validate.half_angle(half_angle)
     origin = validate.point("origin", origin)
+    direction = validate.unit("direction", direction)
     if n_rays is None:
         n_rays = _ray_count(grid, origin, half_angle)
-    directions, angles = _directions(validate.unit("direction", direction), half_angle, n_rays,
-                                     pattern)
-    return directions, _ray_weights(angles, half_angle, weighting, sigma)
+    count, rings = _ray_total(half_angle, n_rays, pattern)
+    sigmas = np.array([_sigma(half_angle, weighting, sigma)])
+    directions, _, weights, _ = _sample(direction[None], np.array([half_angle]), [count],
+                                        [rings], pattern, sigmas)
+    return directions, weights
 
 
 def chunk_starts(n_rays):
-    """Boundaries of a cone's chunks of rays (see ``CONE_CHUNKS``)."""
-    chunks = max(1, min(CONE_CHUNKS, n_rays // CONE_CHUNK_RAYS))
-    return np.linspace(0, n_rays, chunks + 1).astype(np.int64)
+    """Boundaries of a cone's chunks of rays (see ``CONE_CHUNKS``), an int64 array."""
+    return chunk_bounds(np.array([n_rays]))[0]
+
+
+def chunk_bounds(counts):
+    """:func:`chunk_starts` of cones of ``counts`` rays laid end to end.
+
+    Returns (bounds, cone_bounds): cone ``c``'s chunks are cut at
+    ``bounds[cone_bounds[c]:cone_bounds[c + 1]]``, ray indices counted from
+    the first cone's first ray (its own first and end included). Chunk ``i``
+    of ``n`` of a cone of ``r`` rays starts at ``i * r // n``: integers, the
+    same however many cones are cut at once.
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    chunks = np.clip(counts // CONE_CHUNK_RAYS, 1, CONE_CHUNKS)
+    cone_bounds = np.zeros(counts.shape[0] + 1, dtype=np.int64)
+    np.cumsum(chunks + 1, out=cone_bounds[1:])
+    cone = np.repeat(np.arange(counts.shape[0]), chunks + 1)
+    index = np.arange(cone_bounds[-1]) - cone_bounds[cone]
+    first_ray = np.cumsum(counts) - counts
+    return first_ray[cone] + index * counts[cone] // chunks[cone], cone_bounds
 
 
 def aggregate_cells(grid, offsets, cells, t_enter, axis, weights, chunks=None, fixation=None):
@@ -272,12 +287,6 @@ def theta_shifts(grid, axes):
     return (grid.n_theta // 2 - np.maximum(j_axes, 0)) % grid.n_theta
 
 
-def _normalised(weights):
-    """``weights`` over their (numpy, pairwise) sum, or as they are when it is not positive."""
-    total = weights.sum()
-    return weights / total if total > 0 else weights
-
-
 def by_first_reach(cells, weights, t_first, normalise):
     """Sort a cone's aggregated cells by first reach (ties stay in the order given).
 
@@ -286,7 +295,7 @@ def by_first_reach(cells, weights, t_first, normalise):
     order = np.argsort(t_first, kind="stable")
     weights = weights[order]
     if normalise:
-        weights = _normalised(weights)
+        _cone.normalise(weights)
     # ``np.take`` along the rows: indexing an (n, 3) array by ``order`` costs 4x more.
     return np.take(cells, order, axis=0), weights, t_first[order]
 
@@ -420,43 +429,42 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
                                                validate.vectors("directions", directions))
     origins = validate.origin_size("origins", origins)
     n_cones = origins.shape[0]
-    angles = validate.real_array("half_angles", half_angles, "numbers of radians")
-    if angles.ndim > 1 or (angles.ndim == 1 and angles.shape[0] != n_cones):
-        raise ValueError(f"half_angles must be one number or one per cone ({n_cones}), "
-                         f"got shape {angles.shape}")
-    half_angles = np.broadcast_to(angles, (n_cones,))
+    half_angles = validate.half_angles("half_angles", half_angles, n_cones)
+    directions = validate.unit_directions(directions)
     if n_cones == 0:
         return []
-    samples = [
-        sample_rays(grid, origin, direction, angle, n_rays, pattern, weighting, sigma)
-        for origin, direction, angle in zip(origins, directions, half_angles)
-    ]
+    totals = [_ray_total(angle, _ray_count(grid, origin, angle) if n_rays is None else n_rays,
+                         pattern)
+              for origin, angle in zip(origins, half_angles.tolist())]
+    counts = [count for count, _ in totals]
+    sigmas = [_sigma(angle, weighting, sigma) for angle in half_angles.tolist()]
+    all_directions, _, all_weights, cone_rays = _sample(
+        directions, half_angles, counts, [rings for _, rings in totals], pattern, sigmas)
+    cone_directions_ = np.split(all_directions, cone_rays[1:-1])
+    ray_weights = np.split(all_weights, cone_rays[1:-1])
     if device == "cuda":
+        samples = list(zip(cone_directions_, ray_weights))
         return [ConeTrace(*cone, *sample, origin, grid, None) for cone, sample, origin
                 in zip(cones_on_gpu(grid, origins, samples), samples, origins)]
-    counts = [len(sample[0]) for sample in samples]
-    all_origins = np.repeat(origins, counts, axis=0)
-    all_directions = np.concatenate([sample[0] for sample in samples])
-    traces = trace_given_rays(grid, all_origins, all_directions)
+    traces = trace_given_rays(grid, np.repeat(origins, counts, axis=0), all_directions)
     # Every cone aggregated in one parallel call, each in the chunks trace_cone
     # cuts it into: the same cells and sums as one at a time, bit for bit.
-    cone_rays = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    chunks = [chunk_starts(count) + start for count, start in zip(counts, cone_rays)]
-    cone_bounds = np.concatenate([[0], np.cumsum([len(c) for c in chunks])]).astype(np.int64)
+    bounds, cone_bounds = chunk_bounds(counts)
     pool, ray_pool = batching.box_pools()
     cells, weights, t_first, at, found, needed = _cone.aggregate_cones(
-        traces.offsets, cone_rays, np.concatenate(chunks), cone_bounds, traces.cells,
-        traces.t_enter, np.concatenate([sample[1] for sample in samples]), grid.n_rho,
-        grid.n_theta, theta_shifts(grid, np.array([sample[0][0] for sample in samples])), pool,
+        traces.offsets, cone_rays, bounds, cone_bounds, traces.cells, traces.t_enter, all_weights,
+        grid.n_rho, grid.n_theta, theta_shifts(grid, all_directions[cone_rays[:-1]]), pool,
         ray_pool)
     batching.keep_box_pools(int(needed))
     results = []
-    for cone, (cone_directions_, ray_weights) in enumerate(samples):
+    segments = traces.offsets[cone_rays]
+    for cone in range(n_cones):
         first, end = cone_rays[cone], cone_rays[cone + 1]
-        lo, hi = traces.offsets[first], traces.offsets[end]
+        lo, hi = segments[cone], segments[cone + 1]
         own = Traces(traces.offsets[first:end + 1] - lo, traces.cells[lo:hi],
                      traces.t_enter[lo:hi], traces.t_exit[lo:hi])
         rows = slice(at[cone], at[cone] + found[cone])
-        results.append(ConeTrace(cells[rows], _normalised(weights[rows]), t_first[rows],
-                                 cone_directions_, ray_weights, origins[cone], grid, own))
+        results.append(ConeTrace(cells[rows], weights[rows], t_first[rows],
+                                 cone_directions_[cone], ray_weights[cone], origins[cone], grid,
+                                 own))
     return results

@@ -1,5 +1,7 @@
 """Gaze cones: sampling, weights, aggregation, the default ray count, bad input."""
 
+import math
+
 import numpy as np
 import pytest
 from oracle import union_of_rays
@@ -51,6 +53,75 @@ def test_sampled_directions_lie_in_the_cone():
         assert angles.max() <= 0.3 + 1e-12
     assert cone_directions(GAZE, 0.3, 100, "fibonacci")[0].shape == (100, 3)
     assert cone_directions(GAZE, 0.3, 100, "rings")[0].shape == (1 + 3 * 6 * 7, 3)  # 6 rings
+
+
+def _numpy_cone(axis, half_angle, n_rays, pattern, sigma):
+    """The cone's rays written out plainly in numpy: the construction
+    ``cone_directions`` documents, to compare the sampling kernel with."""
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    if pattern == "fibonacci":
+        index = np.arange(n_rays)
+        angles = np.arccos(1.0 - (1.0 - np.cos(half_angle)) * (index + 0.5) / n_rays)
+        around = index * (np.pi * (3.0 - np.sqrt(5.0)))  # golden angles
+    else:
+        rings = int(np.ceil((-3.0 + np.sqrt(9.0 + 12.0 * (n_rays - 1))) / 6.0))
+        angles, around = [0.0], [0.0]
+        for ring in range(1, rings + 1):
+            angles += [half_angle * ring / rings] * (6 * ring)
+            around += list(2 * np.pi * (np.arange(6 * ring) + 0.5 * (ring % 2)) / (6 * ring))
+        angles, around = np.array(angles), np.array(around)
+    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+    first = np.cross(axis, helper)
+    first /= np.linalg.norm(first)
+    second = np.cross(axis, first)
+    sideways = np.cos(around)[:, None] * first + np.sin(around)[:, None] * second
+    directions = np.cos(angles)[:, None] * axis + np.sin(angles)[:, None] * sideways
+    weights = np.exp(-0.5 * (angles / sigma) ** 2) if sigma else np.ones(len(angles))
+    return directions, angles, weights / weights.sum()
+
+
+@pytest.mark.parametrize("pattern, n_rays", [("fibonacci", 1000), ("fibonacci", 17),
+                                             ("rings", 2), ("rings", 1000), ("rings", 4000)])
+def test_sampled_rays_follow_the_documented_construction(pattern, n_rays):
+    # Random axes, some within 1e-13 of the x axis where the frame's helper
+    # changes, and of the z axis; the angles of the rings exactly r h / R.
+    rng = np.random.default_rng(11)
+    axes = [rng.normal(size=3), [1.0, 1e-13, -2e-13], [0.9 * (1 + 1e-15), 0.4, 0.1],
+            [-1e-14, 3e-14, 1.0]]
+    for axis in axes:
+        half_angle = rng.uniform(0.001, 0.5)  # under 30 degrees: no unit warning
+        sigma = rng.uniform(0.01, 1.0)
+        cone = trace_cone(GRID, ORIGIN, axis, half_angle, n_rays=n_rays, pattern=pattern,
+                          sigma=sigma)
+        directions, angles = cone_directions(axis, half_angle, n_rays, pattern)
+        want, want_angles, want_weights = _numpy_cone(axis, half_angle, n_rays, pattern, sigma)
+        np.testing.assert_array_equal(cone.directions, directions)
+        np.testing.assert_allclose(directions, want, rtol=0, atol=4e-16)
+        np.testing.assert_allclose(angles, want_angles, rtol=1e-15, atol=1e-15)
+        # In the tails exp() turns an ulp of the angle into many: compare exponents.
+        np.testing.assert_allclose(np.log(cone.ray_weights), np.log(want_weights), rtol=1e-14,
+                                   atol=1e-14)
+        assert abs(math.fsum(cone.ray_weights) - 1.0) < 3e-16  # a compensated sum
+        if pattern == "rings":
+            rings = round(np.sqrt(n_rays / 3))  # 1 + 3 R (R + 1) rays: R(R + 1) ~ n / 3
+            rings = next(r for r in range(rings - 2, rings + 3) if 1 + 3 * r * (r + 1) >= n_rays)
+            ring_of = np.repeat(np.arange(rings + 1), [1] + [6 * r for r in range(1, rings + 1)])
+            np.testing.assert_array_equal(angles, half_angle * ring_of / rings)
+
+
+def test_chunks_of_many_cones_are_each_cones_own():
+    from logsph_trace.cone import CONE_CHUNK_RAYS, CONE_CHUNKS, chunk_bounds, chunk_starts
+
+    counts = [1, 31, 32, 33, 64, 65, 225, 511, 512, 513, 1000, 99_999, 7]
+    bounds, cone_bounds = chunk_bounds(counts)
+    start = 0
+    for cone, count in enumerate(counts):
+        own = bounds[cone_bounds[cone]:cone_bounds[cone + 1]] - start
+        np.testing.assert_array_equal(own, chunk_starts(count))
+        assert own[0] == 0 and own[-1] == count and np.all(np.diff(own) > 0)
+        assert len(own) - 1 == max(1, min(CONE_CHUNKS, count // CONE_CHUNK_RAYS))
+        assert np.ptp(np.diff(own)) <= 1  # as even as integers allow
+        start += count
 
 
 def test_gaussian_weighting_favours_the_axis():
@@ -106,9 +177,16 @@ def test_many_cones_equal_one_at_a_time():
             _same_cone(result, trace_cone(GRID, origin, gaze, angle, n_rays=n_rays))
             assert result.weights.sum() == pytest.approx(1.0) or len(result) == 0
     assert len(batch[4]) == 0  # outside the grid, looking away
+    for kwargs in (dict(pattern="rings", n_rays=200), dict(weighting="uniform", n_rays=90),
+                   dict(sigma=0.01)):
+        batch = trace_cones(GRID, origins, gazes, half_angles, **kwargs)
+        for result, origin, gaze, angle in zip(batch, origins, gazes, half_angles):
+            _same_cone(result, trace_cone(GRID, origin, gaze, angle, **kwargs))
 
 
 def _same_cone(one, other):
+    np.testing.assert_array_equal(one.directions, other.directions)
+    np.testing.assert_array_equal(one.ray_weights, other.ray_weights)
     np.testing.assert_array_equal(one.cells, other.cells)
     np.testing.assert_array_equal(one.weights, other.weights)
     np.testing.assert_array_equal(one.t_first, other.t_first)

@@ -387,6 +387,8 @@ def test_requests_that_cannot_fit_fail_before_allocating():
         lt.Grid(0.3, 10, 64, 10**10, 180)
     with pytest.raises(MemoryError, match="n_rays: a cone of 1,000,000,000 rays"):
         lt.trace_cone(SMALL, [0, 0, 0], [0, 0, 1], 0.05, n_rays=10**9)
+    with pytest.raises(MemoryError, match="n_rays: 3 cones of 1,500,000,000 rays in all"):
+        lt.trace_cones(SMALL, [0, 0, 0], np.eye(3), 0.05, n_rays=5 * 10**8)
     with pytest.raises(MemoryError, match=r"grid: an occupancy map of \(20000, 20000, 20000\)"):
         OccupancyGrid(lt.Grid(0.3, 10, 20000, 20000, 20000))
 

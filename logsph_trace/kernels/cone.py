@@ -1,4 +1,4 @@
-"""Aggregate the traces of a cone's rays into weighted cells (``@jit`` only).
+"""Sample the rays of cones, and aggregate their traces into weighted cells (``@jit`` only).
 
 A cone's rays stay close to each other, so at each radius the cells they
 cross fill a small box of (theta, phi) index space; the boxes are addressed
@@ -13,6 +13,122 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
+
+# The Fibonacci spiral's step around the axis: pi (3 - sqrt(5)) radians.
+GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
+
+
+@jit(inline="always")
+def _frame(x, y, z):
+    """Two unit vectors completing the unit axis (x, y, z) to a right-handed
+    orthonormal frame, as six numbers: first = axis x helper, normalised;
+    second = axis x first."""
+    if abs(x) < 0.9:  # helper (1, 0, 0)
+        first_x, first_y, first_z = 0.0, z, -y
+    else:  # helper (0, 1, 0)
+        first_x, first_y, first_z = -z, 0.0, x
+    length = math.sqrt(first_x * first_x + first_y * first_y + first_z * first_z)
+    first_x, first_y, first_z = first_x / length, first_y / length, first_z / length
+    return (first_x, first_y, first_z,
+            y * first_z - z * first_y, z * first_x - x * first_z, x * first_y - y * first_x)
+
+
+@jit(inline="always")
+def _ray_angles(index, n_rays, half_angle, fibonacci, rings):
+    """Angle from the axis and angle around it of ray ``index`` of a cone's
+    ``n_rays`` (see ``sample_cones``)."""
+    if fibonacci:
+        cos_angle = 1.0 - (1.0 - math.cos(half_angle)) * (index + 0.5) / n_rays
+        return math.acos(min(max(cos_angle, -1.0), 1.0)), index * GOLDEN_ANGLE
+    if index == 0:
+        return 0.0, 0.0
+    # Ring r holds rays 1 + 3 r (r - 1) to 3 r (r + 1), 6 r of them; the root
+    # is off by at most one either way in floating point.
+    ring = max(1, int(math.ceil((-3.0 + math.sqrt(9.0 + 12.0 * index)) / 6.0)))
+    while 3 * ring * (ring + 1) < index:
+        ring += 1
+    while ring > 1 and 3 * ring * (ring - 1) >= index:
+        ring -= 1
+    count = 6 * ring
+    around = 2.0 * math.pi * ((index - 1 - 3 * ring * (ring - 1)) + 0.5 * (ring % 2)) / count
+    return half_angle * ring / rings, around
+
+
+@jit(inline="always")
+def normalise(weights):
+    """Divide ``weights`` by their sum in place, unless it is not positive.
+
+    The sum is compensated (Neumaier), so its error does not grow with the
+    count. One definition for every path: a cone's weights come out the
+    same, bit for bit, however many cones a call holds.
+    """
+    total = 0.0
+    compensation = 0.0
+    for index in range(weights.shape[0]):
+        value = weights[index]
+        new_total = total + value
+        if abs(total) >= abs(value):
+            compensation += (total - new_total) + value
+        else:
+            compensation += (value - new_total) + total
+        total = new_total
+    total += compensation
+    if total > 0:
+        for index in range(weights.shape[0]):
+            weights[index] /= total
+
+
+@jit(parallel=True)
+def sample_cones(axes, half_angles, ray_at, fibonacci, rings, sigmas, directions, angles,
+                 weights):
+    """Sample the rays of many cones, one ray per ``prange`` iteration.
+
+    Cone ``c`` has the unit axis ``axes[c]``, the half-angle ``half_angles[c]``
+    and rays ``ray_at[c]:ray_at[c + 1]`` of the outputs ``directions`` (n, 3),
+    ``angles`` (n,) (each ray's angle from the axis) and ``weights`` (n,).
+    One ray is the axis alone. ``fibonacci``: a Fibonacci spiral over the
+    cap, ray i at cos(angle) = 1 - (1 - cos h) (i + 0.5) / n, i golden
+    angles around (equal solid angle per ray); else the axis and
+    ``rings[c]`` rings of 6 r rays at angles r h / rings[c], odd rings
+    turned by half a step (the count must be 1 + 3 R (R + 1)). Weights:
+    ``exp(-angle^2 / (2 sigma^2))`` for ``sigmas[c] > 0``, relative to the
+    ray nearest the axis (a tiny sigma cannot underflow them all), else
+    uniform; normalised per cone (``normalise``), one cone per ``prange``
+    iteration.
+
+    Each ray depends only on its cone and its index in it, so a cone's rays
+    are the same bits whatever else the call holds: :func:`trace_cone` and
+    :func:`trace_cones` sample through this one kernel.
+    """
+    n_cones = ray_at.shape[0] - 1
+    for ray in prange(ray_at[n_cones]):
+        c = np.searchsorted(ray_at, ray, side="right") - 1
+        start, n_rays = ray_at[c], ray_at[c + 1] - ray_at[c]
+        x, y, z = axes[c, 0], axes[c, 1], axes[c, 2]
+        if n_rays == 1:
+            directions[ray, 0], directions[ray, 1], directions[ray, 2] = x, y, z
+            angles[ray] = 0.0
+            weights[ray] = 0.0  # the exponent
+            continue
+        first_x, first_y, first_z, second_x, second_y, second_z = _frame(x, y, z)
+        angle, around = _ray_angles(ray - start, n_rays, half_angles[c], fibonacci, rings[c])
+        cos_around, sin_around = math.cos(around), math.sin(around)
+        cos_angle, sin_angle = math.cos(angle), math.sin(angle)
+        directions[ray, 0] = cos_angle * x + sin_angle * (cos_around * first_x
+                                                          + sin_around * second_x)
+        directions[ray, 1] = cos_angle * y + sin_angle * (cos_around * first_y
+                                                          + sin_around * second_y)
+        directions[ray, 2] = cos_angle * z + sin_angle * (cos_around * first_z
+                                                          + sin_around * second_z)
+        angles[ray] = angle
+        weights[ray] = -0.5 * (angle / sigmas[c]) ** 2 if sigmas[c] > 0 else 0.0
+    for c in prange(n_cones):
+        largest = -np.inf  # the largest exponent: the ray nearest the axis
+        for ray in range(ray_at[c], ray_at[c + 1]):
+            largest = max(largest, weights[ray])
+        for ray in range(ray_at[c], ray_at[c + 1]):
+            weights[ray] = math.exp(weights[ray] - largest)
+        normalise(weights[ray_at[c]:ray_at[c + 1]])
 
 
 @jit
@@ -270,7 +386,8 @@ def aggregate_cones(offsets, cone_rays, bounds, cone_bounds, cells, t_enter, wei
     Returns (cells (U, 3) int32, weights (U,), t_first (U,), at (c + 1,),
     found (c,), needed): cone ``c``'s cells are rows ``at[c]:at[c] +
     found[c]``, ordered by first reach (ties in box order, as a stable sort
-    of ``aggregate_boxes``' output puts them); its weights unnormalised.
+    of ``aggregate_boxes``' output puts them), its weights normalised in
+    that order as ``by_first_reach`` normalises them (``normalise``).
     """
     n_cones = cone_rays.shape[0] - 1
     low_j, high_j, low_k, high_k = _no_extents(n_cones, n_rho)
@@ -319,6 +436,7 @@ def aggregate_cones(offsets, cone_rays, bounds, cone_bounds, cells, t_enter, wei
             out_cells[at[c] + row] = cells_now[order[row]]
             out_weight[at[c] + row] = weight_now[order[row]]
             out_first[at[c] + row] = first_now[order[row]]
+        normalise(out_weight[at[c]:end])
     return out_cells, out_weight, out_first, at, found, needed
 
 
