@@ -292,7 +292,7 @@ def by_first_reach(cells, weights, t_first, normalise):
 
     The weights are normalised to sum to 1 if ``normalise``.
     """
-    order = np.argsort(t_first, kind="stable")
+    order = _cone.first_reach_order(t_first)
     weights = weights[order]
     if normalise:
         _cone.normalise(weights)

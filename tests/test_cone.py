@@ -124,6 +124,25 @@ def test_chunks_of_many_cones_are_each_cones_own():
         start += count
 
 
+def test_first_reach_order_is_numpys_stable_argsort():
+    # The radix sort that orders a cone's cells: ties in the order given,
+    # -0.0 equal to 0.0, infinities and subnormals in place, keys that share
+    # whole digits (skipped passes) and keys that differ only in their last bit.
+    from logsph_trace.kernels.cone import first_reach_order
+
+    rng = np.random.default_rng(5)
+    tiny = np.finfo(float).smallest_subnormal
+    cases = [np.empty(0), np.array([2.5]), np.array([0.0, -0.0, 0.0, -0.0]),
+             np.array([3.0, 1.0, 3.0, -2.0, -0.0, np.inf, -np.inf, 0.0, tiny, -tiny, 1.0]),
+             rng.uniform(0, 20, 2000), np.round(rng.uniform(0, 5, 3000), 1),
+             rng.normal(size=5000) * 1e300, np.full(100, 7.5),
+             np.nextafter(1.0, 2.0, out=np.ones(500), where=rng.random(500) < 0.5),
+             np.concatenate([rng.uniform(0, 1, 100), -rng.uniform(0, 1, 100)])]
+    for t_first in cases:
+        np.testing.assert_array_equal(first_reach_order(t_first),
+                                      np.argsort(t_first, kind="stable"))
+
+
 def test_gaussian_weighting_favours_the_axis():
     cone = trace_cone(GRID, ORIGIN, GAZE, np.radians(10), n_rays=300)
     _, angles = cone_directions(GAZE, np.radians(10), 300)

