@@ -57,12 +57,18 @@ def test_sampled_directions_lie_in_the_cone():
 
 def _numpy_cone(axis, half_angle, n_rays, pattern, sigma):
     """The cone's rays written out plainly in numpy: the construction
-    ``cone_directions`` documents, to compare the sampling kernel with."""
+    ``cone_directions`` documents, to compare the sampling kernel with.
+
+    Sines and cosines come from Python's ``math`` (the C library): some
+    numpy versions' vectorised ones are off by 1e-14 at the thousands of
+    radians the spiral turns through.
+    """
+    cos, sin, acos = (np.vectorize(f, otypes=[float]) for f in (math.cos, math.sin, math.acos))
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
     if pattern == "fibonacci":
         index = np.arange(n_rays)
-        angles = np.arccos(1.0 - (1.0 - np.cos(half_angle)) * (index + 0.5) / n_rays)
-        around = index * (np.pi * (3.0 - np.sqrt(5.0)))  # golden angles
+        angles = acos(1.0 - (1.0 - math.cos(half_angle)) * (index + 0.5) / n_rays)
+        around = index * (math.pi * (3.0 - math.sqrt(5.0)))  # golden angles
     else:
         rings = int(np.ceil((-3.0 + np.sqrt(9.0 + 12.0 * (n_rays - 1))) / 6.0))
         angles, around = [0.0], [0.0]
@@ -74,8 +80,8 @@ def _numpy_cone(axis, half_angle, n_rays, pattern, sigma):
     first = np.cross(axis, helper)
     first /= np.linalg.norm(first)
     second = np.cross(axis, first)
-    sideways = np.cos(around)[:, None] * first + np.sin(around)[:, None] * second
-    directions = np.cos(angles)[:, None] * axis + np.sin(angles)[:, None] * sideways
+    sideways = cos(around)[:, None] * first + sin(around)[:, None] * second
+    directions = cos(angles)[:, None] * axis + sin(angles)[:, None] * sideways
     weights = np.exp(-0.5 * (angles / sigma) ** 2) if sigma else np.ones(len(angles))
     return directions, angles, weights / weights.sum()
 
