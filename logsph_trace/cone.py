@@ -448,10 +448,9 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     sigmas = [_sigma(angle, weighting, sigma) for angle in half_angles.tolist()]
     all_directions, _, all_weights, cone_rays = _sample(
         directions, half_angles, counts, [rings for _, rings in totals], pattern, sigmas)
-    cone_directions_ = np.split(all_directions, cone_rays[1:-1])
-    ray_weights = np.split(all_weights, cone_rays[1:-1])
     if device == "cuda":
-        samples = list(zip(cone_directions_, ray_weights))
+        samples = [(all_directions[first:end], all_weights[first:end])
+                   for first, end in zip(cone_rays[:-1].tolist(), cone_rays[1:].tolist())]
         return [ConeTrace(*cone, *sample, origin, grid, None) for cone, sample, origin
                 in zip(cones_on_gpu(grid, origins, samples), samples, origins)]
     traces = trace_given_rays(grid, np.repeat(origins, counts, axis=0), all_directions)
@@ -464,15 +463,20 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
         grid.n_rho, grid.n_theta, theta_shifts(grid, all_directions[cone_rays[:-1]]), pool,
         ray_pool)
     batching.keep_box_pools(int(needed))
+    # The per-cone views, with Python ints for bounds: this loop runs on one
+    # thread, so it is kept to slicing.
     results = []
-    segments = traces.offsets[cone_rays]
-    for cone in range(n_cones):
-        first, end = cone_rays[cone], cone_rays[cone + 1]
+    offsets = traces.offsets
+    rays = cone_rays.tolist()
+    segments = offsets[cone_rays].tolist()
+    rows = at.tolist()
+    for cone, count in enumerate(found.tolist()):
+        first, end = rays[cone], rays[cone + 1]
         lo, hi = segments[cone], segments[cone + 1]
-        own = Traces(traces.offsets[first:end + 1] - lo, traces.cells[lo:hi],
-                     traces.t_enter[lo:hi], traces.t_exit[lo:hi])
-        rows = slice(at[cone], at[cone] + found[cone])
-        results.append(ConeTrace(cells[rows], weights[rows], t_first[rows],
-                                 cone_directions_[cone], ray_weights[cone], origins[cone], grid,
-                                 own))
+        own = Traces(offsets[first:end + 1] - lo, traces.cells[lo:hi], traces.t_enter[lo:hi],
+                     traces.t_exit[lo:hi])
+        row = rows[cone]
+        results.append(ConeTrace(cells[row:row + count], weights[row:row + count],
+                                 t_first[row:row + count], all_directions[first:end],
+                                 all_weights[first:end], origins[cone], grid, own))
     return results
