@@ -123,17 +123,38 @@ def _ray_total(half_angle, n_rays, pattern):
     One ray, the axis, if ``half_angle`` is 0 or one ray is asked for;
     ``"rings"`` rounds up to fill its last ring.
     """
+    counts, rings = _ray_totals([half_angle], [n_rays], pattern)
+    return counts[0], rings[0]
+
+
+def _ray_totals(half_angles, n_rays, pattern):
+    """:func:`_ray_total` of many cones: lists of their half-angles and rays asked for.
+
+    Returns (counts, rings), lists. ``pattern`` is checked once, and each
+    distinct kind of ``n_rays`` value once (they are the caller's one value,
+    or the default counts).
+    """
     if pattern not in PATTERNS:
         raise ValueError(f"pattern must be one of {PATTERNS}, got {pattern!r}")
-    if isinstance(n_rays, (bool, np.bool_)) or not isinstance(n_rays, (int, np.integer)) \
-            or n_rays < 1:
-        raise ValueError(f"n_rays must be a positive integer, got {n_rays!r}")
-    if half_angle == 0.0 or n_rays == 1:
-        return 1, 0
-    if pattern == "fibonacci":
-        return int(n_rays), 0
-    rings = math.ceil((-3.0 + math.sqrt(9.0 + 12.0 * (int(n_rays) - 1))) / 6.0)
-    return 1 + 3 * rings * (rings + 1), rings
+    for wanted in set(map(type, n_rays)):
+        if issubclass(wanted, (bool, np.bool_)) or not issubclass(wanted, (int, np.integer)):
+            bad = next(value for value in n_rays if type(value) is wanted)
+            raise ValueError(f"n_rays must be a positive integer, got {bad!r}")
+    if min(n_rays, default=1) < 1:
+        raise ValueError(f"n_rays must be a positive integer, got {min(n_rays)!r}")
+    counts, rings = [], []
+    for half_angle, wanted in zip(half_angles, n_rays):
+        if half_angle == 0.0 or wanted == 1:
+            counts.append(1)
+            rings.append(0)
+        elif pattern == "fibonacci":
+            counts.append(int(wanted))
+            rings.append(0)
+        else:
+            ring = math.ceil((-3.0 + math.sqrt(9.0 + 12.0 * (int(wanted) - 1))) / 6.0)
+            counts.append(1 + 3 * ring * (ring + 1))
+            rings.append(ring)
+    return counts, rings
 
 
 def _sample(axes, half_angles, counts, rings, pattern, sigmas):
@@ -181,14 +202,28 @@ def default_ray_count(grid, origin, half_angle):
 
 def _ray_count(grid, origin, half_angle):
     """:func:`default_ray_count` for a checked ``origin`` and ``half_angle``."""
-    if half_angle == 0.0:
-        return 1
-    cell_width = grid.rho_max * grid._narrowest_angle  # the least theta or phi width
-    x, y, z = origin.tolist()
-    reach = math.sqrt(x * x + y * y + z * z) + grid.rho_max
-    solid_angle = 2.0 * math.pi * (1.0 - math.cos(half_angle))
-    needed = math.ceil(2.0 * solid_angle * (reach / cell_width) ** 2)
-    return min(max(needed, MIN_DEFAULT_RAYS), MAX_DEFAULT_RAYS)
+    return _ray_counts(grid, origin[None], [half_angle])[0]
+
+
+def _ray_counts(grid, origins, half_angles):
+    """:func:`default_ray_count` of many cones: checked ``origins`` (c, 3), a list of angles.
+
+    In Python floats, one cone at a time (a list): the same arithmetic for
+    one cone and for many, so :func:`trace_cone` and :func:`trace_cones`
+    give a cone the same rays.
+    """
+    rho_max = grid.rho_max
+    cell_width = rho_max * grid._narrowest_angle  # the least theta or phi width
+    counts = []
+    for (x, y, z), half_angle in zip(origins.tolist(), half_angles):
+        if half_angle == 0.0:
+            counts.append(1)
+            continue
+        reach = math.sqrt(x * x + y * y + z * z) + rho_max
+        solid_angle = 2.0 * math.pi * (1.0 - math.cos(half_angle))
+        needed = math.ceil(2.0 * solid_angle * (reach / cell_width) ** 2)
+        counts.append(min(max(needed, MIN_DEFAULT_RAYS), MAX_DEFAULT_RAYS))
+    return counts
 
 
 def _sigma(half_angle, weighting, sigma):
@@ -441,13 +476,13 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     directions = validate.unit_directions(directions)
     if n_cones == 0:
         return []
-    totals = [_ray_total(angle, _ray_count(grid, origin, angle) if n_rays is None else n_rays,
-                         pattern)
-              for origin, angle in zip(origins, half_angles.tolist())]
-    counts = [count for count, _ in totals]
-    sigmas = [_sigma(angle, weighting, sigma) for angle in half_angles.tolist()]
-    all_directions, _, all_weights, cone_rays = _sample(
-        directions, half_angles, counts, [rings for _, rings in totals], pattern, sigmas)
+    angles = half_angles.tolist()
+    counts, rings = _ray_totals(
+        angles, _ray_counts(grid, origins, angles) if n_rays is None else [n_rays] * n_cones,
+        pattern)
+    sigmas = [_sigma(angle, weighting, sigma) for angle in angles]
+    all_directions, _, all_weights, cone_rays = _sample(directions, half_angles, counts, rings,
+                                                        pattern, sigmas)
     if device == "cuda":
         samples = [(all_directions[first:end], all_weights[first:end])
                    for first, end in zip(cone_rays[:-1].tolist(), cone_rays[1:].tolist())]
