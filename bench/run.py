@@ -10,7 +10,10 @@ same run and the figure that matters is their ratio. Each timing is the best
 of ``--repeats`` rounds of ``trace_many`` (output arrays included). Both
 kernels batch the same way: one appending pass on one thread, two halves
 meeting in the middle on two, ordered chunks on more; per thread count the
-table gives the time in each phase.
+table gives the time in each phase. Four times the exact output's size of
+memory is written once before timing (``--prime MB``; 0 skips it): on a fresh
+VM a process's first touch of memory costs the host a fault as well
+(``bench.workload.prime_memory``).
 """
 
 import argparse
@@ -25,7 +28,16 @@ import numba
 import numpy as np
 
 import logsph_trace as lt
-from bench.workload import fresh_processes, make_box, make_grid, make_rays, thread_counts, timed
+from bench.workload import (
+    fresh_processes,
+    make_box,
+    make_grid,
+    make_rays,
+    prime_memory,
+    prime_note,
+    thread_counts,
+    timed,
+)
 from logsph_trace import _batching, _validate
 from logsph_trace._files import write_text
 
@@ -56,7 +68,9 @@ def first_call_times():
     }
 
 
-def measure(n_rays, cells, repeats, thread_counts):
+def measure(n_rays, cells, repeats, thread_counts, prime=None):
+    """Time every kernel and path; ``prime``: MB to write once first (None: four times
+    the exact output, which covers the Cartesian one and a call's worth; 0: none)."""
     grid = make_grid(cells)
     box = make_box(cells)
     origins, directions = make_rays(n_rays)
@@ -67,7 +81,10 @@ def measure(n_rays, cells, repeats, thread_counts):
 
     most = numba.get_num_threads()
     buffers = lt.TraceBuffers()  # the robot's case: the same arrays every frame
-    lt.trace_many(grid, origins, directions, out=buffers)
+    segments = lt.trace_many(grid, origins, directions, out=buffers).cells.shape[0]
+    if prime is None:
+        prime = 4 * segments * _batching.SEGMENT_BYTES / 2**20
+    primed = (prime, prime_memory(prime * 2**20)) if prime > 0 else None
     # The ordered chunks, which trace_many takes from 3 threads on, timed on
     # every thread count: on a 2-core machine this is the only view of them.
     unit_origins, unit_directions = _validate.rays(origins, directions)
@@ -118,6 +135,7 @@ def measure(n_rays, cells, repeats, thread_counts):
         "rays": n_rays,
         "cells_per_axis": cells,
         "repeats": repeats,
+        "primed_mb_s": primed,
         "exact": exact,
         "amanatides_woo": reference,
         "exact_into_reused_buffers": reused,
@@ -139,7 +157,8 @@ def table(result, first_call):
     lines = [
         f"{result['rays']:,} random rays, {result['cells_per_axis']}^3 cells, "
         f"best of {result['repeats']} alternated rounds; both kernels write the same output "
-        "(cell, t_enter, t_exit per voxel) in one appending pass",
+        "(cell, t_enter, t_exit per voxel) in one appending pass; "
+        + prime_note(result.get("primed_mb_s")),
         "",
         "| kernel, 1 thread | voxels/ray | ns/voxel | rays/s |",
         "|---|---:|---:|---:|",
@@ -190,11 +209,14 @@ def main(argv=None):
                         help="comma-separated thread counts (default: 1 and all)")
     parser.add_argument("--no-first-call", action="store_true",
                         help="skip the cold/warm start timing")
+    parser.add_argument("--prime", type=float, default=None,
+                        help="MB of memory to write once before timing (default: four times "
+                             "the output; 0: none; see bench.workload.prime_memory)")
     parser.add_argument("--out", type=Path, default=RESULTS / "traversal.json")
     args = parser.parse_args(argv)
 
     counts = thread_counts(args.threads)
-    result = measure(args.rays, args.cells, args.repeats, counts)
+    result = measure(args.rays, args.cells, args.repeats, counts, args.prime)
     first_call = None if args.no_first_call else first_call_times()
     text = table(result, first_call)
     print(text)
