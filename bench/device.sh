@@ -15,7 +15,7 @@
 # beside the packages and put on the loader's path.
 #
 # Every step has its own time limit (LIMIT_<STEP> seconds; a step that runs
-# over is cut and the rest goes on). The limits of `cpu` add up to 545 s, so
+# over is cut and the rest goes on). The limits of `cpu` add up to 555 s, so
 # it fits one 10-minute call (timeout_s 600) with the set-up; `gpu`'s to 390 s.
 # THREADS (default 1,2,4,8,16), RAYS (default 1000000) and REPEATS size it.
 # The log and every record written come back in $OUT (bench-results.tgz
@@ -112,15 +112,15 @@ compile() {
 }
 
 cpu() {
-    step compile "${LIMIT_COMPILE:-170}" bash bench/device.sh compile
+    step compile "${LIMIT_COMPILE:-200}" bash bench/device.sh compile
     touch "$STAMP"
-    step traversal "${LIMIT_TRAVERSAL:-120}" "$PYTHON" -m bench.run --rays "$RAYS" \
+    step traversal "${LIMIT_TRAVERSAL:-110}" "$PYTHON" -m bench.run --rays "$RAYS" \
         --threads "$THREADS" --repeats "$REPEATS" --no-first-call
     step occupancy "${LIMIT_OCCUPANCY:-90}" "$PYTHON" -m bench.occupancy --threads "$THREADS"
     step integrate_kernels "${LIMIT_KERNELS:-45}" "$PYTHON" -m bench.integrate_kernels \
         --threads "$THREADS"
     step cone "${LIMIT_CONE:-30}" "$PYTHON" -m bench.cone --threads "$THREADS"
-    step faults "${LIMIT_FAULTS:-90}" "$PYTHON" -m bench.faults --rays "$RAYS" \
+    step faults "${LIMIT_FAULTS:-80}" "$PYTHON" -m bench.faults --rays "$RAYS" \
         --threads "$THREADS" --repeats "$REPEATS"
 }
 
