@@ -116,11 +116,11 @@ cpu() {
     touch "$STAMP"
     step traversal "${LIMIT_TRAVERSAL:-110}" "$PYTHON" -m bench.run --rays "$RAYS" \
         --threads "$THREADS" --repeats "$REPEATS" --no-first-call
-    step occupancy "${LIMIT_OCCUPANCY:-90}" "$PYTHON" -m bench.occupancy --threads "$THREADS"
+    step occupancy "${LIMIT_OCCUPANCY:-80}" "$PYTHON" -m bench.occupancy --threads "$THREADS"
     step integrate_kernels "${LIMIT_KERNELS:-45}" "$PYTHON" -m bench.integrate_kernels \
         --threads "$THREADS"
     step cone "${LIMIT_CONE:-30}" "$PYTHON" -m bench.cone --threads "$THREADS"
-    step faults "${LIMIT_FAULTS:-80}" "$PYTHON" -m bench.faults --rays "$RAYS" \
+    step faults "${LIMIT_FAULTS:-90}" "$PYTHON" -m bench.faults --rays "$RAYS" \
         --threads "$THREADS" --repeats "$REPEATS"
 }
 
