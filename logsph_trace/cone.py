@@ -117,31 +117,31 @@ def cone_directions(axis, half_angle, n_rays, pattern="fibonacci"):
     return directions, angles
 
 
+def _check_request(n_rays, pattern):
+    """Raise ValueError unless ``pattern`` is known and ``n_rays`` a positive integer (or None)."""
+    if pattern not in PATTERNS:
+        raise ValueError(f"pattern must be one of {PATTERNS}, got {pattern!r}")
+    if n_rays is not None and (isinstance(n_rays, (bool, np.bool_))
+                               or not isinstance(n_rays, (int, np.integer)) or n_rays < 1):
+        raise ValueError(f"n_rays must be a positive integer, got {n_rays!r}")
+
+
 def _ray_total(half_angle, n_rays, pattern):
     """Return the rays a cone of ``n_rays`` gets, and its rings (0 for ``"fibonacci"``).
 
     One ray, the axis, if ``half_angle`` is 0 or one ray is asked for;
     ``"rings"`` rounds up to fill its last ring.
     """
+    _check_request(n_rays, pattern)
     counts, rings = _ray_totals([half_angle], [n_rays], pattern)
     return counts[0], rings[0]
 
 
 def _ray_totals(half_angles, n_rays, pattern):
-    """:func:`_ray_total` of many cones: lists of their half-angles and rays asked for.
+    """:func:`_ray_total` of many cones, their ``n_rays`` and ``pattern`` checked (lists).
 
-    Returns (counts, rings), lists. ``pattern`` is checked once, and each
-    distinct kind of ``n_rays`` value once (they are the caller's one value,
-    or the default counts).
+    Returns (counts, rings), lists.
     """
-    if pattern not in PATTERNS:
-        raise ValueError(f"pattern must be one of {PATTERNS}, got {pattern!r}")
-    for wanted in set(map(type, n_rays)):
-        if issubclass(wanted, (bool, np.bool_)) or not issubclass(wanted, (int, np.integer)):
-            bad = next(value for value in n_rays if type(value) is wanted)
-            raise ValueError(f"n_rays must be a positive integer, got {bad!r}")
-    if min(n_rays, default=1) < 1:
-        raise ValueError(f"n_rays must be a positive integer, got {min(n_rays)!r}")
     counts, rings = [], []
     for half_angle, wanted in zip(half_angles, n_rays):
         if half_angle == 0.0 or wanted == 1:
@@ -476,6 +476,7 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     directions = validate.unit_directions(directions)
     if n_cones == 0:
         return []
+    _check_request(n_rays, pattern)
     angles = half_angles.tolist()
     counts, rings = _ray_totals(
         angles, _ray_counts(grid, origins, angles) if n_rays is None else [n_rays] * n_cones,
@@ -483,9 +484,10 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     sigmas = [_sigma(angle, weighting, sigma) for angle in angles]
     all_directions, _, all_weights, cone_rays = _sample(directions, half_angles, counts, rings,
                                                         pattern, sigmas)
+    rays = cone_rays.tolist()  # Python ints for the per-cone slices below
     if device == "cuda":
         samples = [(all_directions[first:end], all_weights[first:end])
-                   for first, end in zip(cone_rays[:-1].tolist(), cone_rays[1:].tolist())]
+                   for first, end in zip(rays[:-1], rays[1:])]
         return [ConeTrace(*cone, *sample, origin, grid, None) for cone, sample, origin
                 in zip(cones_on_gpu(grid, origins, samples), samples, origins)]
     traces = trace_given_rays(grid, np.repeat(origins, counts, axis=0), all_directions)
@@ -502,7 +504,6 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     # thread, so it is kept to slicing.
     results = []
     offsets = traces.offsets
-    rays = cone_rays.tolist()
     segments = offsets[cone_rays].tolist()
     rows = at.tolist()
     for cone, count in enumerate(found.tolist()):
