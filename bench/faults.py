@@ -83,9 +83,9 @@ def measure(n_rays, cells, repeats, counts, prime=None):
             assert np.array_equal(got.cells, want.cells)
             assert np.array_equal(got.t_exit, want.t_exit)
     first_touch(TOUCH_ROWS)
-    if prime is None:  # two outputs live at once: a call's, and the one before it
-        prime = 2 * segments * _batching.SEGMENT_BYTES / 2**20
-    primed = (prime, prime_memory(prime * 2**20)) if prime > 0 else None
+    # Two outputs live at once: a call's, and the one before it.
+    primed = prime_memory(2 * segments * _batching.SEGMENT_BYTES / 2**20 if prime is None
+                          else prime)
 
     serial_calls = {
         "serial_fresh": lambda: _batching.run_exact(grid, origins, directions, far, False),
@@ -168,10 +168,9 @@ def table(result):
 
 
 def main(argv=None):
-    args, counts = thread_arguments(__doc__.splitlines()[0], 7, argv, rays=100_000, cells=128,
-                                    prime=-1)
-    result = measure(args.rays, args.cells, args.repeats, counts,
-                     None if args.prime < 0 else args.prime)
+    args, counts = thread_arguments(__doc__.splitlines()[0], 7, argv, prime="twice the output",
+                                    rays=100_000, cells=128)
+    result = measure(args.rays, args.cells, args.repeats, counts, args.prime)
     write_results("faults", argv, table(result), {"result": result})
 
 

@@ -29,6 +29,7 @@ import numpy as np
 
 import logsph_trace as lt
 from bench.workload import (
+    add_prime_option,
     fresh_processes,
     make_box,
     make_grid,
@@ -82,9 +83,8 @@ def measure(n_rays, cells, repeats, thread_counts, prime=None):
     most = numba.get_num_threads()
     buffers = lt.TraceBuffers()  # the robot's case: the same arrays every frame
     segments = lt.trace_many(grid, origins, directions, out=buffers).cells.shape[0]
-    if prime is None:
-        prime = 4 * segments * _batching.SEGMENT_BYTES / 2**20
-    primed = (prime, prime_memory(prime * 2**20)) if prime > 0 else None
+    primed = prime_memory(4 * segments * _batching.SEGMENT_BYTES / 2**20 if prime is None
+                          else prime)
     # The ordered chunks, which trace_many takes from 3 threads on, timed on
     # every thread count: on a 2-core machine this is the only view of them.
     unit_origins, unit_directions = _validate.rays(origins, directions)
@@ -209,9 +209,7 @@ def main(argv=None):
                         help="comma-separated thread counts (default: 1 and all)")
     parser.add_argument("--no-first-call", action="store_true",
                         help="skip the cold/warm start timing")
-    parser.add_argument("--prime", type=float, default=None,
-                        help="MB of memory to write once before timing (default: four times "
-                             "the output; 0: none; see bench.workload.prime_memory)")
+    add_prime_option(parser, "four times the exact output")
     parser.add_argument("--out", type=Path, default=RESULTS / "traversal.json")
     args = parser.parse_args(argv)
 

@@ -36,8 +36,8 @@ def make_rays(n_rays=100_000, seed=0):
     return origins, directions
 
 
-def prime_memory(nbytes):
-    """Write once to every page of ``nbytes`` of fresh memory, then free it; return the seconds.
+def prime_memory(megabytes):
+    """Write once to every page of ``megabytes`` of fresh memory, then free it.
 
     A virtual machine's first write to memory its guest has never used costs
     the host a fault of its own: on this project's 2-core VM (Firecracker),
@@ -48,12 +48,17 @@ def prime_memory(nbytes):
     fresh output first write to about twice what they will allocate at
     once; freed, the pages go back to the guest's free lists, where the
     process's later allocations find them.
+
+    Returns (megabytes, seconds) for :func:`prime_note`, or None where
+    ``megabytes`` is not positive (nothing primed).
     """
+    if not megabytes > 0:
+        return None
     start = time.perf_counter()
-    block = np.empty(int(nbytes), dtype=np.uint8)
+    block = np.empty(int(megabytes * 2**20), dtype=np.uint8)
     block[::4096] = 1
     del block
-    return time.perf_counter() - start
+    return megabytes, time.perf_counter() - start
 
 
 def prime_note(primed):
@@ -63,6 +68,13 @@ def prime_note(primed):
     megabytes, seconds = primed
     return (f"memory primed: {megabytes:,.0f} MB written once before timing, in {seconds:.2f} s "
             "(a fresh VM's first write to its memory costs far more than a later one)")
+
+
+def add_prime_option(parser, default):
+    """Add ``--prime MB`` (None: ``default``, the benchmark's own size; 0: none) to ``parser``."""
+    parser.add_argument("--prime", type=float, default=None,
+                        help=f"MB of memory to write once before timing (default: {default}; "
+                             "0: none; see bench.workload.prime_memory)")
 
 
 def best_time(func, repeats):
@@ -90,10 +102,11 @@ def timed(call, best=None, keep=lambda result: None):
     return best
 
 
-def thread_arguments(description, repeats, argv, **sizes):
+def thread_arguments(description, repeats, argv, prime=None, **sizes):
     """Parse a benchmark's ``--threads`` and ``--repeats``, and an integer option per
-    keyword of ``sizes`` (``rays=100_000``: ``--rays``, default 100,000); return
-    (args, thread counts)."""
+    keyword of ``sizes`` (``rays=100_000``: ``--rays``, default 100,000); with
+    ``prime`` (the default's words), ``--prime`` too (``add_prime_option``);
+    return (args, thread counts)."""
     import argparse
 
     import numba
@@ -104,6 +117,8 @@ def thread_arguments(description, repeats, argv, **sizes):
     parser.add_argument("--repeats", type=int, default=repeats)
     for name, default in sizes.items():
         parser.add_argument(f"--{name}", type=int, default=default)
+    if prime is not None:
+        add_prime_option(parser, prime)
     args = parser.parse_args(argv)
     return args, thread_counts(args.threads)
 
