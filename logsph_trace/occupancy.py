@@ -56,9 +56,9 @@ def _logit(p):
 # coherently (``_mark_off_centre``); fewer are all walked whole.
 COHERENT_MIN_RAYS = 20_000
 # The direction bins of the coherent scan: at most this many per cube face side.
-COHERENT_MAX_BINS = 512
+COHERENT_MAX_BINS = 768
 # One ray is sampled per this many bins across (a coarse bin).
-SAMPLE_COARSENING = 2
+SAMPLE_COARSENING = 3
 
 
 def _coherent_plan(grid, origin, n_rays):
@@ -76,9 +76,13 @@ def _coherent_plan(grid, origin, n_rays):
     if (n_rays < COHERENT_MIN_RAYS or not 0.0 < distance < rho_min
             or not grid.theta_full or phi_range[0] > -np.pi / 2 or phi_range[1] < np.pi / 2):
         return 0
-    # Bins half the narrowest cell as seen from the sensor, so the samples
-    # cross most cells near it.
-    step = 0.5 * grid._narrowest_angle * rho_min / (rho_min + distance)
+    # Coarse bins (a sample each) about the narrowest cell as seen from the
+    # sensor, so the samples cross most cells near it; bins a third of that,
+    # so a bin's limit, which all its rays share, follows the candidates'
+    # shadows closely. (Half a cell and a sample per 2 x 2 bins, the same
+    # samples, took 7% longer on the Motorcycle frame 10 cm off the centre,
+    # and as long on the table scan: bench/results/issue12_other_rays.md.)
+    step = grid._narrowest_angle * rho_min / (rho_min + distance) / SAMPLE_COARSENING
     return min(max(math.ceil(2.0 / step), 8), COHERENT_MAX_BINS)
 
 
