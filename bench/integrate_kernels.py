@@ -26,7 +26,7 @@ from bench.occupancy import scans
 from bench.workload import thread_arguments, write_results
 from logsph_trace import occupancy as occupancy_module
 
-KERNELS = ("mark_radial", "apply_radial", "bin_rays", "mark_scan", "ray_cone",
+KERNELS = ("mark_radial", "apply_radial", "ray_extent", "bin_rays", "mark_scan", "ray_cone",
            "columns_in_view", "near_masks", "mark_candidates", "apply_scan")
 CHECKS = ("vectors", "finite_rows", "point", "choice")
 # mark_scan's walk argument (the 7th), by the kernels' names for it.

@@ -55,10 +55,14 @@ def _logit(p):
 # A scan from inside the egocentric gap with at least this many rays is marked
 # coherently (``_mark_off_centre``); fewer are all walked whole.
 COHERENT_MIN_RAYS = 20_000
-# The direction bins of the coherent scan: at most this many per cube face side.
-COHERENT_MAX_BINS = 768
-# One ray is sampled per this many bins across (a coarse bin).
-SAMPLE_COARSENING = 3
+# The direction bins of the coherent scan: about this many across the narrowest
+# cell as seen from the sensor, and at most COHERENT_MAX_BINS per cube face side.
+BINS_PER_CELL = 4
+COHERENT_MAX_BINS = 1024
+# A sample (the first ray of a coarse bin) for about this many rays, and the
+# scan's extent, to size the coarse bins by, from every EXTENT_STRIDE-th ray.
+RAYS_PER_SAMPLE = 80
+EXTENT_STRIDE = 64
 
 
 def _coherent_plan(grid, origin, n_rays):
@@ -76,14 +80,33 @@ def _coherent_plan(grid, origin, n_rays):
     if (n_rays < COHERENT_MIN_RAYS or not 0.0 < distance < rho_min
             or not grid.theta_full or phi_range[0] > -np.pi / 2 or phi_range[1] < np.pi / 2):
         return 0
-    # Coarse bins (a sample each) about the narrowest cell as seen from the
-    # sensor, so the samples cross most cells near it; bins a third of that,
-    # so a bin's limit, which all its rays share, follows the candidates'
-    # shadows closely. (Half a cell and a sample per 2 x 2 bins, the same
-    # samples, took 7% longer on the Motorcycle frame 10 cm off the centre,
-    # and as long on the table scan: bench/results/issue12_other_rays.md.)
-    step = grid._narrowest_angle * rho_min / (rho_min + distance) / SAMPLE_COARSENING
+    # Bins a quarter of the narrowest cell as seen from the sensor, so that a
+    # bin's limit, which all its rays share, follows the candidates' shadows
+    # closely (bench/results/issue12_other_rays.md).
+    step = grid._narrowest_angle * rho_min / (rho_min + distance) / BINS_PER_CELL
     return min(max(math.ceil(2.0 / step), 8), COHERENT_MAX_BINS)
+
+
+def _coarsening(per_side, n_rays, extent):
+    """Return the bins across a coarse bin, so that one holds about ``RAYS_PER_SAMPLE`` rays.
+
+    A coarse bin's first ray is a sample, walked whole: the more of the other
+    rays share its cells, the more it saves them. The rays per bin are
+    ``n_rays`` over the bins in the faces' boxes of ``extent``
+    (``_kernels.ray_extent``), at ``per_side`` bins a side. A coarse bin is
+    at most ``BINS_PER_CELL`` bins across, about the narrowest cell, so that
+    the samples cross most cells near the sensor: twice as wide, the table
+    scan 10 cm off took 318 ms instead of 48. The real Motorcycle frame, dense
+    (343,274 rays over 41 x 28 degrees), takes a sample per 3 x 3 bins; the
+    table scan (304,000 over 60 x 45) per 4 x 4
+    (bench/results/issue12_other_rays.md).
+    """
+    area = 0.0
+    for low_u, high_u, low_v, high_v in extent.tolist():
+        if high_u >= low_u:
+            area += (high_u - low_u) * (high_v - low_v)
+    per_bin = n_rays / max(area * (0.5 * per_side) ** 2, 1.0)
+    return min(max(round(math.sqrt(RAYS_PER_SAMPLE / per_bin)), 1), BINS_PER_CELL)
 
 
 # A scan's flags (a byte per cell, shared by the threads) are kept zero for
@@ -120,9 +143,10 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, w
     near the sensor, where neighbouring rays cross the same cells. There the
     scan is marked coherently, with the same cells as walking every ray:
 
-    1. Rays are binned by direction (a cube map, bins about half a cell wide
-       as seen from the sensor); the first ray of each coarse bin
-       (``SAMPLE_COARSENING`` bins across), a sample, is walked whole.
+    1. Rays are binned by direction (a cube map, bins about a fifth of a
+       cell wide as seen from the sensor); the first ray of each coarse bin
+       (``_coarsening`` bins across, about ``RAYS_PER_SAMPLE`` rays), a
+       sample, is walked whole.
     2. A cell the samples did not flag that another ray's walk could meet
        first is a shell-0 cell (its first) or a neighbour of a flagged one:
        a candidate. Each direction bin gets a limit, the lowest shell of a
@@ -156,9 +180,11 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, w
     n_bins = 6 * per_side * per_side
     bins = np.empty(points.shape[0], dtype=np.int64)
     coarse_bins = np.empty(points.shape[0], dtype=np.int64)
-    coarse = max(per_side // SAMPLE_COARSENING, 1)
+    boxes = np.empty((6, 4))
+    _kernels.ray_extent(origin, points, EXTENT_STRIDE, boxes)
+    coarse = max(per_side // _coarsening(per_side, points.shape[0], boxes), 1)
     first = np.empty(6 * coarse * coarse, dtype=np.int64)
-    _kernels.bin_rays(origin, points, per_side, coarse, bins, coarse_bins, first)
+    _kernels.bin_rays(origin, points, per_side, coarse, bins, coarse_bins, first, boxes)
     _kernels.mark_scan(origin, points, max_range, args, free, hits, _kernels.WALK_SAMPLES,
                        coarse_bins, first, bins, no_marks, 0, workers)
     rays = np.empty(4)
@@ -169,7 +195,8 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, w
     masks = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint64)
     _kernels.near_masks(words, grid.n_rho, skip, view, masks, workers)
     limit = np.empty(n_bins, dtype=np.uint8)
-    _kernels.mark_candidates(origin, args, masks, skip, per_side, rays, view, limit, workers)
+    _kernels.mark_candidates(origin, args, masks, skip, per_side, rays, view, boxes, limit,
+                             workers)
     started, ended, straight = _kernels.mark_scan(origin, points, max_range, args, free, hits,
                                                   _kernels.WALK_OTHERS, coarse_bins, first, bins,
                                                   limit, skip, workers)

@@ -20,7 +20,7 @@ def _points(rng, n):
 @pytest.mark.parametrize("sensor, parts", [
     ((0.0, 0.0, 0.0), {"mark_radial", "apply_radial"}),
     # Off the centre with enough rays: the coherent scan, each walk by name.
-    ((0.061, 0.079, -0.013), {"bin_rays", "mark_scan (samples)", "mark_scan (others)",
+    ((0.061, 0.079, -0.013), {"ray_extent", "bin_rays", "mark_scan (samples)", "mark_scan (others)",
                               "ray_cone", "columns_in_view", "near_masks",
                               "mark_candidates", "apply_scan"}),
 ])

@@ -285,18 +285,21 @@ def test_a_cells_shadow_holds_every_direction_meeting_it(grid, sensor):
     for i, j, k in cells:
         points = _inside(rng, grid, i, j, k, 300)
         bins = np.empty(points.shape[0], dtype=np.int64)
-        kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins), np.empty(6, np.int64))
+        boxes = np.empty((6, 4))
+        kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins), np.empty(6, np.int64),
+                         boxes)
         directions = points - origin
         directions /= np.linalg.norm(directions, axis=1)[:, None]
         axis = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
         tight = np.r_[axis, np.arccos(np.clip(directions @ axis, -1, 1)).max()]
         for rays in (everywhere, tight):
             limit = np.full(6 * q * q, 200, dtype=np.uint8)
-            kernels._mark_shadow(*origin, args, i, j, k, q, rays, corners, limit)
+            kernels._mark_shadow(*origin, args, i, j, k, q, rays, boxes, corners, limit)
             assert (limit[bins] == i).all(), (i, j, k)
         # Directions of the cone around another axis do not meet the cell: nothing lowered.
         limit = np.full(6 * q * q, 200, dtype=np.uint8)
-        kernels._mark_shadow(*origin, args, i, j, k, q, np.r_[-axis, 0.1], corners, limit)
+        kernels._mark_shadow(*origin, args, i, j, k, q, np.r_[-axis, 0.1], boxes, corners,
+                             limit)
         assert (limit == 200).all() or tight[3] > 1.0
 
 
@@ -317,11 +320,12 @@ def test_the_bins_limits_are_the_same_on_any_number_of_threads(scan, monkeypatch
     monkeypatch.setattr(occ._kernels, "mark_candidates", recording)
     _flags(grid, sensor, points)
     monkeypatch.undo()
-    (origin, args, masks, skip, q, rays, view, limit, _), = calls
+    (origin, args, masks, skip, q, rays, view, boxes, limit, _), = calls
     want = limit.copy()
     assert 0 < np.count_nonzero(want < skip) < want.size
     limit[:] = 0  # every bin set again
-    kernels.mark_candidates(origin, grid.kernel_args(), masks, skip, q, rays, view, limit, 1)
+    kernels.mark_candidates(origin, grid.kernel_args(), masks, skip, q, rays, view, boxes, limit,
+                            1)
     np.testing.assert_array_equal(limit, want)
     for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
         numba.set_num_threads(threads)
@@ -329,7 +333,7 @@ def test_the_bins_limits_are_the_same_on_any_number_of_threads(scan, monkeypatch
             for workers in (1, 2, 7):
                 limit[:] = 0
                 kernels.mark_candidates(origin, grid.kernel_args(), masks, skip, q, rays, view,
-                                        limit, workers)
+                                        boxes, limit, workers)
                 np.testing.assert_array_equal(limit, want)
         finally:
             numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
@@ -344,21 +348,35 @@ def _bin_cone(bins, q, workers=None):
     return cone
 
 
-def _cube_bins(offsets, q):
-    """Plain cube-map bins of directions ``offsets`` (none zero): the face of the
-    largest |component| (ties to the earlier axis; 1 more for the negative
-    half), the two other components over it, each cut into ``q`` bins."""
+def _cube_uv(offsets):
+    """Plain cube-map face and (u, v) of directions ``offsets`` (none zero): the
+    face of the largest |component| (ties to the earlier axis; 1 more for the
+    negative half), the two other components over it."""
     size = np.abs(offsets)
     axis = np.where((size[:, 0] >= size[:, 1]) & (size[:, 0] >= size[:, 2]), 0,
                     np.where(size[:, 1] >= size[:, 2], 1, 2))
     rows = np.arange(offsets.shape[0])
     major = offsets[rows, axis]
-    face = 2 * axis + (major <= 0)
     others = np.array([[1, 2], [0, 2], [0, 1]])[axis]
-    u = offsets[rows, others[:, 0]] / np.abs(major)
-    v = offsets[rows, others[:, 1]] / np.abs(major)
+    return (2 * axis + (major <= 0), offsets[rows, others[:, 0]] / np.abs(major),
+            offsets[rows, others[:, 1]] / np.abs(major))
+
+
+def _cube_bins(offsets, q):
+    """``_cube_uv``'s u and v each cut into ``q`` bins."""
+    face, u, v = _cube_uv(offsets)
     index = [np.clip(((w + 1.0) * 0.5 * q).astype(np.int64), 0, q - 1) for w in (u, v)]
     return (face * q + index[0]) * q + index[1]
+
+
+def _cube_boxes(offsets):
+    """Per face, the lowest and highest u, then v, of the non-zero ``offsets``."""
+    face, u, v = _cube_uv(offsets[np.any(offsets != 0.0, axis=1)])
+    boxes = np.tile([np.inf, -np.inf, np.inf, -np.inf], (6, 1))
+    for f in np.unique(face):
+        on = face == f
+        boxes[f] = u[on].min(), u[on].max(), v[on].min(), v[on].max()
+    return boxes
 
 
 def test_rays_are_binned_by_their_cube_map_face_and_position():
@@ -375,10 +393,12 @@ def test_rays_are_binned_by_their_cube_map_face_and_position():
     points = origin + offsets
     for q, coarse_q in ((306, 153), (7, 3), (1, 1)):
         bins, coarse = (np.empty(points.shape[0], dtype=np.int64) for _ in range(2))
+        boxes = np.empty((6, 4))
         kernels.bin_rays(origin, points, q, coarse_q, bins, coarse,
-                         np.empty(6 * coarse_q * coarse_q, dtype=np.int64))
+                         np.empty(6 * coarse_q * coarse_q, dtype=np.int64), boxes)
         np.testing.assert_array_equal(bins, _cube_bins(offsets, q))
         np.testing.assert_array_equal(coarse, _cube_bins(offsets, coarse_q))
+        np.testing.assert_array_equal(boxes, _cube_boxes(offsets))
 
 
 def test_each_coarse_bins_first_ray_is_its_sample_on_any_number_of_threads():
@@ -392,7 +412,9 @@ def test_each_coarse_bins_first_ray_is_its_sample_on_any_number_of_threads():
             for q, coarse_q in ((306, 153), (8, 1)):
                 bins, coarse = (np.empty(points.shape[0], dtype=np.int64) for _ in range(2))
                 first = np.full(6 * coarse_q * coarse_q, -7, dtype=np.int64)
-                kernels.bin_rays(origin, points, q, coarse_q, bins, coarse, first)
+                boxes = np.empty((6, 4))
+                kernels.bin_rays(origin, points, q, coarse_q, bins, coarse, first, boxes)
+                np.testing.assert_array_equal(boxes, _cube_boxes(points - origin))
                 want = np.full(first.shape[0], points.shape[0])
                 ray = np.flatnonzero(coarse >= 0)
                 np.minimum.at(want, coarse[ray], ray)
@@ -414,11 +436,40 @@ def test_the_ray_cone_holds_every_ray():
         for q in (8, 101, 306):
             bins = np.empty(points.shape[0], dtype=np.int64)
             kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins),
-                             np.empty(6, np.int64))
+                             np.empty(6, np.int64), np.empty((6, 4)))
             cone = _bin_cone(np.unique(bins), q)
             directions = points - origin
             directions /= np.linalg.norm(directions, axis=1)[:, None]
             assert np.arccos(np.clip(directions @ cone[:3], -1, 1)).max() <= cone[3]
+
+
+def test_the_scans_extent_is_the_box_of_every_strideth_ray():
+    rng = np.random.default_rng(59)
+    origin = np.array([0.06, 0.08, 0.0])
+    points = _camera_scan(rng, origin, (1.0, 1.0, 1.0))  # rays on three faces
+    points[::5] = origin  # no rays
+    for stride in (1, 7, 64):
+        boxes = np.empty((6, 4))
+        kernels.ray_extent(origin, points, stride, boxes)
+        np.testing.assert_array_equal(boxes, _cube_boxes(points[::stride] - origin))
+
+
+def test_a_sample_stands_for_about_rays_per_sample_rays_and_a_coarse_bin_is_at_most_a_cell():
+    # A 0.5 x 0.5 square of one face at 100 bins a side: 625 bins.
+    extent = np.tile([np.inf, -np.inf, np.inf, -np.inf], (6, 1))
+    extent[4] = -0.25, 0.25, 0.0, 0.5
+    per_sample = occ.RAYS_PER_SAMPLE
+    assert occ._coarsening(100, 625 * per_sample // 4, extent) == 2  # 2 x 2 bins a sample
+    assert occ._coarsening(100, 625 * per_sample, extent) == 1
+    assert occ._coarsening(100, 625 * per_sample * 100, extent) == 1
+    # Sparse rays: as wide as the narrowest cell, no wider.
+    assert occ._coarsening(100, 625, extent) == occ.BINS_PER_CELL
+    # Rays in one direction (no area) or on several faces.
+    extent[4] = 0.1, 0.1, 0.2, 0.2
+    assert occ._coarsening(100, 10**6, extent) == 1
+    extent[4] = -0.25, 0.25, 0.0, 0.5
+    extent[0] = -0.25, 0.25, 0.0, 0.5
+    assert occ._coarsening(100, 2 * 625 * per_sample // 4, extent) == 2
 
 
 def test_the_ray_cone_is_the_same_on_any_number_of_threads():

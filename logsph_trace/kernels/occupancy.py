@@ -633,21 +633,62 @@ def _bin_of(u, q):
     return min(max(int((u + 1.0) * 0.5 * q), 0), q - 1)
 
 
+@jit(inline="always")
+def _no_boxes(boxes):
+    """Set every face's box (lowest and highest u, then v) to hold nothing."""
+    for face in range(6):
+        boxes[face, 0] = np.inf
+        boxes[face, 1] = -np.inf
+        boxes[face, 2] = np.inf
+        boxes[face, 3] = -np.inf
+
+
+@jit(inline="always")
+def _take_in(boxes, face, u, v):
+    """Widen ``face``'s box to hold (u, v)."""
+    boxes[face, 0] = min(boxes[face, 0], u)
+    boxes[face, 1] = max(boxes[face, 1], u)
+    boxes[face, 2] = min(boxes[face, 2], v)
+    boxes[face, 3] = max(boxes[face, 3], v)
+
+
+@jit
+def ray_extent(origin, points, stride, boxes):
+    """``boxes[face]``: the lowest and highest u, then v, of the directions from
+    ``origin`` of every ``stride``-th ray on each cube-map face (inf, -inf
+    where there are none): the scan's extent, roughly, to size its samples
+    by (``occupancy._coarsening``)."""
+    _no_boxes(boxes)
+    for row in range(0, points.shape[0], stride):
+        x = points[row, 0] - origin[0]
+        y = points[row, 1] - origin[1]
+        z = points[row, 2] - origin[2]
+        if x != 0.0 or y != 0.0 or z != 0.0:
+            face, u, v = _face_uv(x, y, z)
+            _take_in(boxes, face, u, v)
+
+
 @jit(parallel=True)
-def bin_rays(origin, points, q, q_coarse, bins, coarse, first):
+def bin_rays(origin, points, q, q_coarse, bins, coarse, first, boxes):
     """Cube-map bin of each ray's direction from ``origin`` (``q`` x ``q`` per
     face, and ``q_coarse`` x ``q_coarse`` in ``coarse``); -1 for no ray (a
     point at the sensor). ``first[b]``: the first row in coarse bin ``b`` (a
-    sample), or the number of rows where none is.
+    sample), or the number of rows where none is. ``boxes[face]``: the
+    lowest and highest u, then v, of the rays on each face (inf, -inf where
+    there are none), merged from each block's in block order.
 
     The offset to the point is binned as it is: dividing by its length, as
     ``sensor_ray`` does, moves (u, v) by an ulp or so, well inside the 1e-12
     that every bound on a bin's contents is widened by.
     """
     n_rays = points.shape[0]
+    n_blocks = (n_rays + BLOCK - 1) // BLOCK
+    block_boxes = np.empty((n_blocks, 6, 4), dtype=np.float64)
     for b in prange(first.shape[0]):
         first[b] = n_rays
-    for block in prange((n_rays + BLOCK - 1) // BLOCK):
+    for block in prange(n_blocks):
+        box = block_boxes[block]
+        _no_boxes(box)
         for row in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
             x = points[row, 0] - origin[0]
             y = points[row, 1] - origin[1]
@@ -663,6 +704,14 @@ def bin_rays(origin, points, q, q_coarse, bins, coarse, first):
                 # Rows rise within a block: the locked minimum only for the
                 # first of a bin here, and only while no earlier row is in.
                 lower_to(first, b, row)
+                _take_in(box, face, u, v)
+    for face in range(6):
+        for side in range(4):
+            bound = np.inf if side % 2 == 0 else -np.inf
+            for block in range(n_blocks):
+                bound = (min(bound, block_boxes[block, face, side]) if side % 2 == 0
+                         else max(bound, block_boxes[block, face, side]))
+            boxes[face, side] = bound
 
 
 @jit(inline="always")
@@ -878,7 +927,7 @@ def _split_point(edges, sines, cosines, index, step, parts):
 
 
 @jit(inline="always")
-def _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit):
+def _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, boxes, corners, limit):
     """Lower to ``i`` the ``limit`` of every bin holding a direction from (ox, oy, oz)
     that meets cell (i, j, k).
 
@@ -963,22 +1012,27 @@ def _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit):
             u_max = max(u_max, u)
             v_min = min(v_min, v)
             v_max = max(v_max, v)
-        u_from = 0
-        u_to = q - 1
-        v_from = 0
-        v_to = q - 1
+        # The rays on this face lie in its box (``bin_rays``), to within the
+        # 1e-12 that every bound on a bin's contents is widened by.
+        u_low = boxes[face, 0] - 1e-12
+        u_high = boxes[face, 1] + 1e-12
+        v_low = boxes[face, 2] - 1e-12
+        v_high = boxes[face, 3] + 1e-12
         if front and spread <= 0.1:
             # A direction of the face is within 54.7 degrees of its axis, one
             # ``spread`` from it within 60.5, where the projection's scale is
             # below 1 / cos^2 = 4.21.
             widen = 4.25 * spread + 1e-12
-            if (u_min - widen > 1.0 or u_max + widen < -1.0 or v_min - widen > 1.0
-                    or v_max + widen < -1.0):
-                continue
-            u_from = _bin_of(u_min - widen, q)
-            u_to = _bin_of(u_max + widen, q)
-            v_from = _bin_of(v_min - widen, q)
-            v_to = _bin_of(v_max + widen, q)
+            u_low = max(u_low, u_min - widen)
+            u_high = min(u_high, u_max + widen)
+            v_low = max(v_low, v_min - widen)
+            v_high = min(v_high, v_max + widen)
+        if not (u_low <= u_high and v_low <= v_high):
+            continue  # no ray on this face meets the cell (or none is on it)
+        u_from = _bin_of(u_low, q)
+        u_to = _bin_of(u_high, q)
+        v_from = _bin_of(v_low, q)
+        v_to = _bin_of(v_high, q)
         for bu in range(u_from, u_to + 1):
             for bv in range(v_from, v_to + 1):
                 index = (face * q + bu) * q + bv
@@ -986,7 +1040,7 @@ def _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit):
 
 
 @jit(parallel=True)
-def mark_candidates(origin, grid, masks, skip, q, rays, view, limit, workers):
+def mark_candidates(origin, grid, masks, skip, q, rays, view, boxes, limit, workers):
     """Set ``limit[bin]`` to the lowest shell below ``skip`` of a cell that a
     walked ray with a direction in that bin might flag while the sampled rays
     (``masks``) did not (``skip`` where there is none).
@@ -1024,13 +1078,13 @@ def mark_candidates(origin, grid, masks, skip, q, rays, view, limit, workers):
                 if view[column]:
                     _mark_column_candidates(origin[0], origin[1], origin[2], grid, masks, skip,
                                             q, column // n_phi, column % n_phi, below, pole_low,
-                                            pole_high, rays, corners, limit)
+                                            pole_high, rays, boxes, corners, limit)
             block = take(counter, n_blocks)
 
 
 @jit(inline="always")
 def _mark_column_candidates(ox, oy, oz, grid, masks, skip, q, j, k, below, pole_low, pole_high,
-                            rays, corners, limit):
+                            rays, boxes, corners, limit):
     """``mark_candidates`` for column (j, k)."""
     n_theta = grid.theta_edges.shape[0] - 1
     n_phi = grid.phi_edges.shape[0] - 1
@@ -1050,7 +1104,7 @@ def _mark_column_candidates(ox, oy, oz, grid, masks, skip, q, j, k, below, pole_
     candidates = grown & ~masks[j * n_phi + k] & below
     for i in range(skip):
         if (candidates >> np.uint64(i)) & one:
-            _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, corners, limit)
+            _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, boxes, corners, limit)
 
 
 @jit
