@@ -25,6 +25,31 @@ def _each(function, edges):
     return np.array([function(edge) for edge in edges.tolist()], dtype=np.float64)
 
 
+# An elevation edge this close to 0 is the plane y = 0 (``_flat_cone_to_plane``).
+FLAT_CONE = 4 * np.finfo(np.float64).eps
+
+
+def _flat_cone_to_plane(phi_edges):
+    """Return ``phi_edges`` with an edge within ``FLAT_CONE`` of 0 set to exactly 0.
+
+    ``np.linspace(-pi/2, pi/2, 101)`` puts its middle edge at 2.2e-16, not 0: a
+    cone so flat that where a ray crosses it, its height above y = 0 is below
+    the rounding of the crossing's height, so the trace's test of which half
+    of the cone a crossing lies on was a coin toss, and a ray rising through
+    it lost the crossing and every one after it (it kept the cell below the
+    plane to its end). As the plane, its crossing is the plane's.
+    """
+    flat = np.abs(phi_edges) <= FLAT_CONE
+    if not flat.any():
+        return phi_edges
+    if np.count_nonzero(flat) > 1:
+        raise ValueError(f"phi_edges has {np.count_nonzero(flat)} edges within {FLAT_CONE:.2g} "
+                         "of 0, which are all the plane y = 0: keep one")
+    phi_edges = phi_edges.copy()
+    phi_edges[flat] = 0.0
+    return phi_edges
+
+
 def rho_edges_for(rho_min, rho_max, n_rho, spacing="log"):
     """Radial edges for one of the named spacings (docs/geometry.md, "Radial spacings").
 
@@ -123,7 +148,8 @@ class Grid:
             theta_max = theta_min + 2 * np.pi
         validate.phi_range(phi_min, phi_max, "phi_range")
         theta_edges = np.linspace(theta_min, theta_max, n_theta + 1)
-        phi_edges = np.linspace(max(phi_min, -np.pi / 2), min(phi_max, np.pi / 2), n_phi + 1)
+        phi_edges = _flat_cone_to_plane(
+            np.linspace(max(phi_min, -np.pi / 2), min(phi_max, np.pi / 2), n_phi + 1))
         self._setup(rho_edges, theta_edges, phi_edges, spacing,
                     _SPACING_KIND[spacing], _locate.UNIFORM, _locate.UNIFORM)
 
@@ -151,7 +177,7 @@ class Grid:
         if validate.theta_width(theta[0], theta[-1], "theta_edges"):
             theta[-1] = theta[0] + 2 * np.pi
         validate.phi_range(phi[0], phi[-1], "phi_edges")
-        phi = np.clip(phi, -np.pi / 2, np.pi / 2)
+        phi = _flat_cone_to_plane(np.clip(phi, -np.pi / 2, np.pi / 2))
         kinds = [_locate.EXPLICIT] * 3
         if spacing is None or spacing == "explicit":
             spacing = "explicit"
@@ -161,8 +187,10 @@ class Grid:
             if not np.array_equal(rho, rho_edges_for(rho[0], rho[-1], rho.size - 1, spacing)):
                 raise ValueError(f"rho_edges are not the edges of {spacing!r} spacing")
             kinds[0] = _SPACING_KIND[spacing]
-            for axis, edges in ((1, theta), (2, phi)):
-                if np.array_equal(edges, np.linspace(edges[0], edges[-1], edges.size)):
+            for axis, edges, even in ((1, theta, np.linspace(theta[0], theta[-1], theta.size)),
+                                      (2, phi, _flat_cone_to_plane(
+                                          np.linspace(phi[0], phi[-1], phi.size)))):
+                if np.array_equal(edges, even):
                     kinds[axis] = _locate.UNIFORM
         grid = cls.__new__(cls)
         grid._setup(rho, theta, phi, spacing, *kinds)  # Grid's own set-up, after its checks

@@ -112,3 +112,22 @@ def test_ros_frame_is_a_documented_rotation():
 
 def test_repr_names_the_partition():
     assert "log" in repr(lt.Grid(0.3, 10.0, 4, 4, 4))
+
+
+def test_an_elevation_edge_within_rounding_of_zero_is_the_plane():
+    # np.linspace(-pi/2, pi/2, 101)[50] is 2.2e-16: the grids make it 0, and a
+    # grid rebuilt from its edges keeps them and their closed-form lookups.
+    for n_phi in (50, 100):
+        grid = lt.Grid(0.5, 5.0, 4, 8, n_phi)
+        assert grid.phi_edges[n_phi // 2] == 0.0
+        again = lt.Grid.from_edges(grid.rho_edges, grid.theta_edges, grid.phi_edges,
+                                   spacing="log")
+        np.testing.assert_array_equal(again.phi_edges, grid.phi_edges)
+        assert again.phi_kind == grid.phi_kind
+    edges = np.array([-0.5, -2e-16, 3e-16, 0.5])  # two such edges are not increasing
+    with pytest.raises(ValueError):
+        lt.Grid.from_edges([0.5, 1.0], [-1.0, 1.0], edges)
+    grid = lt.Grid.from_edges([0.5, 1.0], [-1.0, 1.0], [-0.5, 2.2e-16, 0.5])
+    assert grid.phi_edges.tolist() == [-0.5, 0.0, 0.5]
+    kept = lt.Grid.from_edges([0.5, 1.0], [-1.0, 1.0], [-0.5, 1e-15, 0.5])
+    assert kept.phi_edges[1] == 1e-15  # farther than 4 ulps of 1 from 0: a cone
