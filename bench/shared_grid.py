@@ -34,7 +34,7 @@ def private_grid(grid):
         grid.theta_edges.copy(), grid.theta_sin.copy(), grid.theta_cos.copy(), grid.theta_kind,
         grid.theta_full,
         grid.phi_edges.copy(), grid.phi_tan2.copy(), grid.phi_nappe.copy(), grid.phi_kind,
-        grid.phi_sin.copy(), grid.phi_cos.copy(),
+        grid.phi_sin.copy(), grid.phi_cos.copy(), grid.phi_flat_from, grid.phi_flat_to,
     )
 
 

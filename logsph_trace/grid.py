@@ -6,6 +6,7 @@ import numpy as np
 
 from . import _validate as validate
 from .kernels import locate as _locate
+from .kernels.exact import FLAT_TAN2
 from .trace import cuda_backend
 
 SPACINGS = ("log", "paper", "uniform")
@@ -315,13 +316,16 @@ class Grid:
             theta = self.theta_edges
             phi = self.phi_edges
             pad = np.zeros(_locate.CONE_BLOCK - 1)
+            tan2 = _each(math.tan, phi) ** 2
+            flat = np.flatnonzero((tan2 > 0.0) & (tan2 < FLAT_TAN2))
             cached = _locate.GridArrays(
                 self.rho_edges, self.rho_edges**2, self.rho_kind,
                 theta, _each(math.sin, theta), _each(math.cos, theta), self.theta_kind,
                 self.theta_full,
-                phi, np.concatenate([_each(math.tan, phi) ** 2, pad]),
+                phi, np.concatenate([tan2, pad]),
                 np.concatenate([np.sign(phi), pad]), self.phi_kind,
                 _each(math.sin, phi), _each(math.cos, phi),
+                int(flat[0]) if flat.size else 0, int(flat[-1]) + 1 if flat.size else 0,
             )
             for array in cached:
                 if isinstance(array, np.ndarray):

@@ -564,3 +564,31 @@ def test_rays_rising_through_the_plane_of_evenly_spaced_elevations(n_phi):
     assert not failures, f"{len(failures)} of {len(origins)} rays differ; first:\n{failures[0]}"
     first = lt.trace(grid, sensor, directions[0])
     assert first.cells[-1, 2] > n_phi // 2  # it ends above the plane, where it is
+
+
+@pytest.mark.parametrize("edge", [1e-15, 3e-13, 1e-11, 1e-9, -1e-9, 1e-7, 2e-6])
+def test_rays_through_an_elevation_edge_all_but_at_zero(edge):
+    """An explicit elevation edge within 1e-5 rad of 0 is a cone all but flat:
+    its quadratic's discriminant and the height of its roots, each a
+    difference of two terms of size c_y^2 or c_y, were rounding below about
+    1e-8, and some rays lost its crossing and every one after it. Timed
+    without the cancellation, every segment lies in its cell. (The oracle's
+    own roots have the same cancellation, so its cells are not the reference
+    here: ``within_faces`` checks each segment against its cell's faces.)
+    """
+    phi = np.r_[np.linspace(-np.pi / 2, -0.1, 10), edge, np.linspace(0.1, np.pi / 2, 10)]
+    grid = lt.Grid.from_edges(np.linspace(0.4, 8.0, 20), np.linspace(-np.pi, np.pi, 37), phi)
+    rng = np.random.default_rng(int(abs(np.log10(abs(edge)))))
+    failures = []
+    for _ in range(120):
+        origin = rng.uniform(-0.2, 0.2, 3)
+        target = rng.uniform(-5.0, 5.0, 3)
+        target[1] = -origin[1] * rng.uniform(0.5, 40.0)  # across y = 0
+        direction = (target - origin) / np.linalg.norm(target - origin)
+        got = lt.trace(grid, origin, direction)
+        message = within_faces((got.cells, got.t_enter, got.t_exit), origin, direction,
+                               grid.rho_edges, grid.theta_edges, grid.phi_edges,
+                               grid.rho_max + float(np.linalg.norm(origin)))
+        if message is not None:
+            failures.append(f"origin={origin.tolist()} direction={direction.tolist()}: {message}")
+    assert not failures, f"{len(failures)} of 120 rays are wrong; first:\n{failures[0]}"

@@ -466,7 +466,6 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
     nappes = phi_nappe[low:low + count]
     out = row[first:first + count]
     earliest = branch_start - slack
-    inf = np.inf
     plane = t_closest - cy / dy
     for k in range(count):
         tan2 = tan2s[k]
@@ -480,24 +479,79 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
         q = -(half_b + math.copysign(math.sqrt(max(disc, 0.0)), half_b))
         u1 = q / a
         u2 = c / q
-        t1 = t_closest + u1
-        t2 = t_closest + u2
-        # No real root and the direction on the cone to within rounding: the
-        # line meets the cone at infinity only (see the docstring).
-        steep = abs(a) > PARALLEL * (rise + spread)
-        real = (disc >= 0.0) | steep
-        # Selects, not branches: ``t < inf`` also rejects NaN, and the nappe
-        # test keeps the cone half whose sign of y matches phi.
-        ok1 = (t1 < inf) & (nappe * (cy + u1 * dy) >= 0.0)
-        ok2 = (t2 < inf) & (nappe * (cy + u2 * dy) >= 0.0)
-        latest = max(t1 if ok1 else -inf, t2 if ok2 else -inf)
-        crossing = (min(t1 if ok1 else inf, t2 if ok2 else inf) if first_branch
-                    else (latest if latest >= earliest
-                          else (earliest if steep & (latest > -inf) else inf)))
-        # Met only at infinity: ahead on the nappe the direction points into,
-        # else behind, where the ray starts within rounding of it: now.
-        crossing = crossing if real else (inf if nappe * dy > 0.0 else earliest)
+        crossing = _pick_crossing(t_closest + u1, t_closest + u2, cy + u1 * dy, cy + u2 * dy,
+                                  nappe, disc, a, rise, spread, dy, first_branch, earliest)
         out[k] = plane if nappe == 0.0 else crossing
+
+
+@jit(inline="always")
+def _pick_crossing(t1, t2, y1, y2, nappe, disc, a, rise, spread, dy, first_branch, earliest):
+    """A cone's crossing from its quadratic's roots ``t1``, ``t2``, where the line
+    is at heights ``y1``, ``y2`` (see ``_cone_times``)."""
+    inf = np.inf
+    # No real root and the direction on the cone to within rounding: the
+    # line meets the cone at infinity only (see ``_cone_times``).
+    steep = abs(a) > PARALLEL * (rise + spread)
+    real = (disc >= 0.0) | steep
+    # Selects, not branches: ``t < inf`` also rejects NaN, and the nappe
+    # test keeps the cone half whose sign of y matches phi.
+    ok1 = (t1 < inf) & (nappe * y1 >= 0.0)
+    ok2 = (t2 < inf) & (nappe * y2 >= 0.0)
+    latest = max(t1 if ok1 else -inf, t2 if ok2 else -inf)
+    crossing = (min(t1 if ok1 else inf, t2 if ok2 else inf) if first_branch
+                else (latest if latest >= earliest
+                      else (earliest if steep & (latest > -inf) else inf)))
+    # Met only at infinity: ahead on the nappe the direction points into,
+    # else behind, where the ray starts within rounding of it: now.
+    return crossing if real else (inf if nappe * dy > 0.0 else earliest)
+
+
+# A cone flatter than this (tan^2 of its elevation) is timed by
+# ``_flat_cone_times``: at most 1e-5 rad from the plane y = 0.
+FLAT_TAN2 = 1e-10
+
+
+@jit(inline="always")
+def _flat_cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cx, cy, cz, dx,
+                     dy, dz, cab, ca2, b2, first_branch, branch_start, slack):
+    """Time again, as ``_cone_times`` does, each cone of ``low`` .. ``low + count - 1``
+    within ``FLAT_TAN2`` of the plane y = 0 (but not the plane itself).
+
+    Near the plane the discriminant ``half_b^2 - a c`` is a difference of two
+    terms of size (c_y d_y)^2 whose difference, the cone's own term, is
+    tan^2 times as small: below tan ~ 1e-8 it was rounding, and with it which
+    half of the cone the roots lie on, tested by the height ``c_y + u d_y``,
+    a difference of two terms of size c_y. An edge of 1e-9 rad lost the
+    crossing of 8 rays in 300 that rose through it, and with it every
+    crossing after (``bench/results/issue12_other_rays.md``). Here both are
+    written without the cancellation: the discriminant is
+    tan^2 |d_y C - c_y B|^2 - tan^4 (C x B)^2 (C = (c_x, c_z), B = (d_x, d_z)),
+    and the heights (tan^2 (C.B d_y - c_y |B|^2) - s d_y sqrt(disc)) / a and
+    (tan^2 (c_y C.B - |C|^2 d_y) - s c_y sqrt(disc)) / q, with s the sign
+    of ``half_b``: the same quantities, exactly, in real arithmetic.
+    """
+    across_x = dy * cx - cy * dx
+    across_z = dy * cz - cy * dz
+    wide = across_x * across_x + across_z * across_z
+    turn = cx * dz - cz * dx
+    rise = dy * dy
+    earliest = branch_start - slack
+    for k in range(count):
+        tan2 = phi_tan2[low + k]
+        if not 0.0 < tan2 < FLAT_TAN2:
+            continue
+        spread = tan2 * b2
+        a = rise - spread
+        half_b = cy * dy - tan2 * cab
+        c = cy * cy - tan2 * ca2
+        disc = tan2 * wide - tan2 * tan2 * (turn * turn)
+        root = math.copysign(math.sqrt(max(disc, 0.0)), half_b)
+        q = -(half_b + root)
+        y1 = (tan2 * (cab * dy - cy * b2) - dy * root) / a
+        y2 = (tan2 * (cy * cab - ca2 * dy) - cy * root) / q
+        row[first + k] = _pick_crossing(t_closest + q / a, t_closest + c / q, y1, y2,
+                                        phi_nappe[low + k], disc, a, rise, spread, dy,
+                                        first_branch, earliest)
 
 
 @jit(inline="always")
@@ -511,7 +565,8 @@ def _reverse(row, first, count):
 
 @jit(inline="always")
 def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_start, phi_tan2,
-                  phi_nappe, lanes, t_closest, cy, dy, cab, ca2, b2, t_final, slack, times, zones):
+                  phi_nappe, lanes, flat_from, flat_to, t_closest, cx, cy, cz, dx, dy, dz, cab,
+                  ca2, b2, t_final, slack, times, zones):
     """The ``steps`` cone crossings of one monotone branch of phi, from ``zone`` in
     direction ``sigma``, clamped into ``[t_prev, t_high]``, appended to row
     ``PHI`` after its first ``n_p``; stops at the first past ``t_final``.
@@ -531,9 +586,12 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
     t_candidate = t_prev
     while step < steps:
         count = min(CONE_BLOCK, steps - step)
-        _cone_times(zone + 1 if sigma > 0 else zone - count + 1, max(count, lanes), phi_tan2,
-                    phi_nappe, row, n_p + 1, t_closest, cy, dy, cab, ca2, b2, first_branch,
-                    branch_start, slack)
+        low = zone + 1 if sigma > 0 else zone - count + 1
+        _cone_times(low, max(count, lanes), phi_tan2, phi_nappe, row, n_p + 1, t_closest, cy, dy,
+                    cab, ca2, b2, first_branch, branch_start, slack)
+        if low < flat_to and flat_from < low + count:  # a cone all but flat in this block
+            _flat_cone_times(low, count, phi_tan2, phi_nappe, row, n_p + 1, t_closest, cx, cy,
+                             cz, dx, dy, dz, cab, ca2, b2, first_branch, branch_start, slack)
         if sigma < 0:
             _reverse(row, n_p + 1, count)
         for _ in range(count):
@@ -577,7 +635,8 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
     ca2 = cx * cx + cz * cz
     n_p, t_prev, zone, done = _branch_times(
         kp, 1 if ph2_start > kp else -1, ph1_steps, t_start, t_turn, 0, True, t_start, phi_tan2,
-        phi_nappe, lanes, t_closest, cy, dy, cab, ca2, b2, t_final, slack, times, zones,
+        phi_nappe, lanes, grid.phi_flat_from, grid.phi_flat_to, t_closest, cx, cy, cz, dx, dy, dz,
+        cab, ca2, b2, t_final, slack, times, zones,
     )
     if ph_jump == 1:
         _, t_prev = _clamp(t_turn, t_prev, inf)
@@ -591,8 +650,9 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
     if not done:
         n_p, _, _, _ = _branch_times(
             zone, 1 if kp_limit > zone else -1, ph2_steps, t_prev, inf, n_p, False,
-            t_turn if t_turn < inf else t_start, phi_tan2, phi_nappe, lanes, t_closest, cy, dy,
-            cab, ca2, b2, t_final, slack, times, zones,
+            t_turn if t_turn < inf else t_start, phi_tan2, phi_nappe, lanes, grid.phi_flat_from,
+            grid.phi_flat_to, t_closest, cx, cy, cz, dx, dy, dz, cab, ca2, b2, t_final, slack,
+            times, zones,
         )
     return n_p
 

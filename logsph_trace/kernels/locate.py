@@ -58,6 +58,10 @@ class GridArrays(NamedTuple):
     phi_kind: int
     phi_sin: np.ndarray
     phi_cos: np.ndarray
+    # The cones from phi_flat_from up to (not including) phi_flat_to lie within
+    # ``exact.FLAT_TAN2`` of the plane y = 0 (``exact._flat_cone_times``).
+    phi_flat_from: int = 0
+    phi_flat_to: int = 0
 
 
 @jit(inline="always")
