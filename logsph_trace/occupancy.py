@@ -143,7 +143,7 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, w
     near the sensor, where neighbouring rays cross the same cells. There the
     scan is marked coherently, with the same cells as walking every ray:
 
-    1. Rays are binned by direction (a cube map, bins about a fifth of a
+    1. Rays are binned by direction (a cube map, bins about a quarter of a
        cell wide as seen from the sensor); the first ray of each coarse bin
        (``_coarsening`` bins across, about ``RAYS_PER_SAMPLE`` rays), a
        sample, is walked whole.

@@ -350,11 +350,19 @@ def sensor_ray(points, row, ox, oy, oz, max_range):
     at ``max_range`` and whether it ends in a hit; a zero length (a point at
     the sensor) is no ray. The direction is the offset over its ``norm3``, as
     ``trace_many`` normalises it."""
-    length = norm3(points[row, 0] - ox, points[row, 1] - oy, points[row, 2] - oz)
+    length, distance, is_hit = _ray_length(points, row, ox, oy, oz, max_range)
     if length == 0.0:
         return 0.0, 0.0, 0.0, 0.0, False, False
     dx, dy, dz = _direction(points, row, ox, oy, oz, length)
-    return dx, dy, dz, min(length, max_range), length <= max_range, True
+    return dx, dy, dz, distance, is_hit, True
+
+
+@jit(inline="always")
+def _ray_length(points, row, ox, oy, oz, max_range):
+    """Ray ``row``'s offset length (0: no ray), that length cut at ``max_range``,
+    and whether the ray ends in a hit (``sensor_ray``)."""
+    length = norm3(points[row, 0] - ox, points[row, 1] - oy, points[row, 2] - oz)
+    return length, min(length, max_range), length <= max_range
 
 
 @jit(inline="always")
@@ -537,11 +545,9 @@ def mark_scan(origin, points, max_range, grid, free, hits, walk, coarse, first, 
                 x = points[row, 0]
                 y = points[row, 1]
                 z = points[row, 2]
-                length = norm3(x - ox, y - oy, z - oz)
+                length, distance, is_hit = _ray_length(points, row, ox, oy, oz, max_range)
                 if length == 0.0:
                     continue  # a point at the sensor: no ray
-                is_hit = length <= max_range
-                distance = min(length, max_range)
                 start = min(np.int64(limit[bins[row]]), skip) if skip > 0 else 0
                 skipped += start > 0
                 if start > 0:
@@ -705,13 +711,14 @@ def bin_rays(origin, points, q, q_coarse, bins, coarse, first, boxes):
                 # first of a bin here, and only while no earlier row is in.
                 lower_to(first, b, row)
                 _take_in(box, face, u, v)
-    for face in range(6):
-        for side in range(4):
-            bound = np.inf if side % 2 == 0 else -np.inf
-            for block in range(n_blocks):
-                bound = (min(bound, block_boxes[block, face, side]) if side % 2 == 0
-                         else max(bound, block_boxes[block, face, side]))
-            boxes[face, side] = bound
+    _no_boxes(boxes)
+    for block in range(n_blocks):  # minima and maxima: the same in any order
+        for face in range(6):
+            other = block_boxes[block, face]
+            boxes[face, 0] = min(boxes[face, 0], other[0])
+            boxes[face, 1] = max(boxes[face, 1], other[1])
+            boxes[face, 2] = min(boxes[face, 2], other[2])
+            boxes[face, 3] = max(boxes[face, 3], other[3])
 
 
 @jit(inline="always")
