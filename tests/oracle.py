@@ -42,13 +42,16 @@ def classify(points, rho_edges, theta_edges, phi_edges):
     return cells
 
 
-def _quadratic_roots(a, half_b, c):
+def _quadratic_roots(a, half_b, c, disc=None):
     """Real roots of a t^2 + 2 half_b t + c, without the cancellation of the textbook formula.
 
     When the ray runs almost parallel to a cone's generatrix ``a`` is ~1e-16 and
     ``(-half_b + sqrt(disc)) / a`` is noise; ``c / q`` keeps the finite root exact.
+    ``disc``, when given, is ``half_b^2 - a c`` computed by the caller in a
+    form free of cancellation.
     """
-    disc = half_b * half_b - a * c
+    if disc is None:
+        disc = half_b * half_b - a * c
     if disc < 0.0:
         return []
     q = -(half_b + np.copysign(np.sqrt(disc), half_b))
@@ -101,10 +104,18 @@ def crossings(origin, direction, rho_edges, theta_edges, phi_edges):
                 ts.append(t_c - py / dy)
             continue
         tan2 = np.tan(angle) ** 2
+        # half_b^2 - a c, written out, is a difference of two terms of size
+        # (p_y d_y)^2 whose true value is of size tan^2: for a cone all but
+        # flat (an edge 1e-15 from 0) it is rounding noise even in extended
+        # precision. Expanded, the p_y^2 d_y^2 terms cancel exactly:
+        # disc = tan^2 |d_y P - p_y D|^2 - tan^4 (P x D)^2 over (x, z).
+        disc = (tan2 * ((dy * px - py * dx) ** 2 + (dy * pz - py * dz) ** 2)
+                - tan2 * tan2 * (px * dz - pz * dx) ** 2)
         ts += [t_c + u for u in _quadratic_roots(
             dy * dy - tan2 * (dx * dx + dz * dz),
             py * dy - tan2 * (px * dx + pz * dz),
             py * py - tan2 * (px * px + pz * pz),
+            disc,
         )]
     # The origin and the y axis are where theta and phi may jump.
     ts.append(t_c)

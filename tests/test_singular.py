@@ -21,7 +21,7 @@ import pytest
 from conftest import GRIDS
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from oracle import UNRESOLVED_TANGENT, compare, cut_at, oracle_trace, within_faces
+from oracle import UNRESOLVED_TANGENT, compare, crossings, cut_at, oracle_trace, within_faces
 from singular import (
     CLASSES,
     FACE_FAMILIES,
@@ -53,6 +53,17 @@ def _agrees(got, want, scale, rel):
     if message is not None and compare(got, want, scale, 2.0 * rel) is None:
         return None
     return message
+
+
+def _wrong_cells(grid, origin, direction):
+    """None when ``lt.trace`` of a unit ``direction`` agrees with the oracle cell
+    by cell and every segment lies in its cell's faces, else a message."""
+    got = lt.trace(grid, origin, direction)
+    got = (got.cells, got.t_enter, got.t_exit)
+    scale = grid.rho_max + float(np.linalg.norm(origin))
+    want = oracle_trace(origin, direction, grid.rho_edges, grid.theta_edges, grid.phi_edges)
+    return _agrees(got, want, scale, 1e-9) or within_faces(
+        got, origin, direction, grid.rho_edges, grid.theta_edges, grid.phi_edges, scale)
 
 
 def _check(grid, kind, offsets, origins, directions, traces, want, label):
@@ -572,9 +583,10 @@ def test_rays_through_an_elevation_edge_all_but_at_zero(edge):
     its quadratic's discriminant and the height of its roots, each a
     difference of two terms of size c_y^2 or c_y, were rounding below about
     1e-8, and some rays lost its crossing and every one after it. Timed
-    without the cancellation, every segment lies in its cell. (The oracle's
-    own roots have the same cancellation, so its cells are not the reference
-    here: ``within_faces`` checks each segment against its cell's faces.)
+    without the cancellation, each ray agrees with the oracle cell by cell
+    (whose own discriminant had the same cancellation until it was written
+    the same way: ``test_the_oracle_finds_the_crossing_of_an_all_but_flat_cone``),
+    and every segment lies in its cell's faces.
     """
     phi = np.r_[np.linspace(-np.pi / 2, -0.1, 10), edge, np.linspace(0.1, np.pi / 2, 10)]
     grid = lt.Grid.from_edges(np.linspace(0.4, 8.0, 20), np.linspace(-np.pi, np.pi, 37), phi)
@@ -585,10 +597,83 @@ def test_rays_through_an_elevation_edge_all_but_at_zero(edge):
         target = rng.uniform(-5.0, 5.0, 3)
         target[1] = -origin[1] * rng.uniform(0.5, 40.0)  # across y = 0
         direction = (target - origin) / np.linalg.norm(target - origin)
-        got = lt.trace(grid, origin, direction)
-        message = within_faces((got.cells, got.t_enter, got.t_exit), origin, direction,
-                               grid.rho_edges, grid.theta_edges, grid.phi_edges,
-                               grid.rho_max + float(np.linalg.norm(origin)))
+        message = _wrong_cells(grid, origin, direction)
         if message is not None:
             failures.append(f"origin={origin.tolist()} direction={direction.tolist()}: {message}")
     assert not failures, f"{len(failures)} of 120 rays are wrong; first:\n{failures[0]}"
+
+
+@pytest.mark.parametrize("edge", [1e-15, -1e-12, 1e-9, 1e-6, 0.3])
+def test_the_oracle_finds_the_crossing_of_an_all_but_flat_cone(edge):
+    """The oracle's own check: a tilted line through a point known to lie on
+    the cone of ``edge`` has a crossing there, to about longdouble's
+    precision. Its discriminant written as ``half_b^2 - a c`` put that
+    crossing 1e-10 away for an edge of 1e-15, a distance larger than the
+    sliver between the cone and the plane y = 0 that such an edge makes.
+    """
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        x, z = rng.uniform(0.2, 0.6, 2) * rng.choice([-1.0, 1.0], 2)
+        on_cone = np.array([x, np.tan(edge) * np.hypot(x, z), z], dtype=np.longdouble)
+        direction = rng.uniform(-1.0, 1.0, 3)
+        direction[1] = np.copysign(rng.uniform(0.3, 1.0), edge)
+        direction /= np.linalg.norm(direction)
+        t_on = rng.uniform(0.5, 2.0)
+        origin = (on_cone - t_on * direction).astype(np.float64)
+        # Rounding the origin to float64 moved the line by ~1e-16, and its
+        # crossing by about as much; the crossing still lies on the cone.
+        breaks = crossings(origin, direction, [0.1, 10.0], [-np.pi, np.pi],
+                           [-np.pi / 2, edge, np.pi / 2])
+        nearest = breaks[np.argmin(np.abs(breaks - t_on))]
+        point = origin.astype(np.longdouble) + nearest * direction.astype(np.longdouble)
+        height = point[1] - np.tan(np.longdouble(edge)) * np.hypot(point[0], point[2])
+        assert abs(nearest - t_on) < 1e-15
+        assert abs(height) < 1e-17 * max(1.0, abs(np.tan(edge)))
+
+
+def _azimuth_grids():
+    """Azimuth edges a hair from 0 or from +-pi, where the elevation's analogue failed."""
+    rho, phi = np.linspace(0.4, 8.0, 20), np.linspace(-np.pi / 2, np.pi / 2, 19)
+    full = np.r_[np.linspace(-np.pi, -0.1, 10), 1e-15, np.linspace(0.1, np.pi, 10)]
+    return {
+        "Grid(n_theta=50)": lambda: lt.Grid(0.4, 8.0, 20, 50, 30, spacing="uniform"),
+        "edge 1e-15": lambda: lt.Grid.from_edges(rho, full, phi),
+        "from -1e-12": lambda: lt.Grid.from_edges(rho, np.linspace(-1e-12, np.pi / 2, 9), phi),
+        "to pi - 1e-15": lambda: lt.Grid.from_edges(rho, np.linspace(0.5, np.pi - 1e-15, 9), phi),
+        "from -pi + 1e-9": lambda: lt.Grid.from_edges(rho, np.linspace(-np.pi + 1e-9, -0.5, 9),
+                                                     phi),
+    }
+
+
+@pytest.mark.parametrize("name", list(_azimuth_grids()))
+def test_rays_across_an_azimuth_edge_all_but_at_zero_or_pi(name):
+    """The azimuth's analogue of the flat cone: half-planes ulps from theta = 0
+    or pi (``Grid(n_theta=50)`` puts one at 4.4e-16), crossed by random rays
+    across x = 0, rays from eyes on or within 1e-12 of that plane, rays all
+    but inside a plane x = c, and rays along z from within 1e-9 of x = 0.
+    Each agrees with the oracle cell by cell and lies in its cells' faces.
+    """
+    grid = _azimuth_grids()[name]()
+    rng = np.random.default_rng(len(name))
+    failures = []
+    for i in range(100):
+        origin = rng.uniform(-0.2, 0.2, 3) if i % 2 else rng.uniform(-6.0, 6.0, 3)
+        target = rng.uniform(-5.0, 5.0, 3)
+        target[0] = -origin[0] * rng.uniform(0.5, 40.0)  # across x = 0
+        kind = i % 5
+        if kind == 1:
+            origin[0] = 0.0
+        elif kind == 2:
+            origin[0] = rng.uniform(-1e-12, 1e-12)
+        direction = target - origin
+        if kind == 3:
+            direction[0] = rng.choice([-1.0, 1.0]) * 10.0 ** rng.uniform(-16.0, -6.0)
+        elif kind == 4:
+            direction = np.array([rng.uniform(-1e-9, 1e-9), rng.uniform(-1.0, 1.0),
+                                  rng.choice([-1.0, 1.0])])
+            origin[0] = rng.uniform(-1e-9, 1e-9)
+        direction /= np.linalg.norm(direction)
+        message = _wrong_cells(grid, origin, direction)
+        if message is not None:
+            failures.append(f"origin={origin.tolist()} direction={direction.tolist()}: {message}")
+    assert not failures, f"{len(failures)} of 100 rays are wrong; first:\n{failures[0]}"
