@@ -677,3 +677,33 @@ def test_rays_across_an_azimuth_edge_all_but_at_zero_or_pi(name):
         if message is not None:
             failures.append(f"origin={origin.tolist()} direction={direction.tolist()}: {message}")
     assert not failures, f"{len(failures)} of 100 rays are wrong; first:\n{failures[0]}"
+
+
+@pytest.mark.parametrize("phi", [
+    np.r_[np.linspace(-np.pi / 2, 1.4, 12), np.pi / 2 - 1e-15, np.pi / 2],
+    np.r_[-np.pi / 2, -np.pi / 2 + 1e-12, np.linspace(-1.4, np.pi / 2, 12)],
+    np.linspace(-0.5, np.pi / 2 - 1e-9, 12),
+], ids=["top pi/2 - 1e-15", "bottom -pi/2 + 1e-12", "to pi/2 - 1e-9"])
+def test_rays_by_an_elevation_edge_all_but_at_the_y_axis(phi):
+    """The other end of phi: cones within 1e-15 to 1e-9 rad of the y axis,
+    whose tan^2 is up to 1e30, crossed by random rays, rays from eyes up to
+    1e-6 off the y axis and rays all but along it. Each agrees with the
+    oracle cell by cell and lies in its cells' faces.
+    """
+    grid = lt.Grid.from_edges(np.linspace(0.4, 8.0, 20), np.linspace(-np.pi, np.pi, 37), phi)
+    rng = np.random.default_rng(12)
+    failures = []
+    for i in range(80):
+        origin = rng.uniform(-0.2, 0.2, 3) if i % 2 else rng.uniform(-6.0, 6.0, 3)
+        if i % 4 == 1:  # beside the y axis
+            origin[[0, 2]] = rng.uniform(-1e-6, 1e-6, 2) * 10.0 ** rng.uniform(-9.0, 0.0)
+        target = rng.uniform(-5.0, 5.0, 3)
+        if i % 4 == 2:  # all but along the y axis
+            target[[0, 2]] = origin[[0, 2]] + rng.uniform(-1e-3, 1e-3, 2) * 10.0 ** rng.uniform(
+                -10.0, 0.0)
+            target[1] = rng.choice([-7.0, 7.0])
+        direction = (target - origin) / np.linalg.norm(target - origin)
+        message = _wrong_cells(grid, origin, direction)
+        if message is not None:
+            failures.append(f"origin={origin.tolist()} direction={direction.tolist()}: {message}")
+    assert not failures, f"{len(failures)} of 80 rays are wrong; first:\n{failures[0]}"
