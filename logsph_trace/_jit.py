@@ -20,7 +20,9 @@ float division by zero return ``inf``/``nan`` as IEEE says instead of
 raising, which the root solvers rely on (a ray parallel to a plane has its
 crossing at infinity).
 ``fastmath`` stays off: it may reorder the tie rules and NaN checks the
-exactness tests hold us to.
+exactness tests hold us to. Processes that start together on an empty cache
+(test workers, a pool) take turns at each kernel (:func:`compile_once`): one
+compiles it, the others load it from the cache.
 
 **Threads and processes.** Numba runs ``prange`` loops on one of three
 threading layers. GNU OpenMP (``omp``, the usual one on Linux) aborts any
@@ -39,12 +41,19 @@ import hashlib
 import os
 import sys
 import threading
+import time
 import types
 from pathlib import Path
 from typing import NamedTuple
 
 import numba
-from numba.core import caching, event
+from numba.core import caching, event, sigutils
+from numba.core.compiler_lock import global_compiler_lock
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: processes compile their kernels unlocked
+    fcntl = None
 
 
 def prefer_tbb():
@@ -258,6 +267,87 @@ COMPILE_NOTE = CompileNote(__name__.partition(".")[0])
 event.register("numba:compile", COMPILE_NOTE)
 
 
+# How long a process waits for another to finish compiling a kernel (and
+# caching it) before it compiles the kernel itself.
+COMPILE_WAIT = 600.0
+# The lock files this process holds: a kernel whose compile types a call to
+# itself does not wait for its own lock.
+_HELD = set()
+
+
+def _lock_path(dispatcher):
+    """Return the lock file beside a kernel's cache index (None: it has no cache)."""
+    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+    index = getattr(cache_file, "_index_path", None)
+    return None if fcntl is None or index is None else index + ".lock"
+
+
+def _acquire(path, wait):
+    """Open ``path`` and lock it; return the open file, which holds the lock.
+
+    Returns None, and the caller goes on unlocked, where the file cannot be
+    made, where the file system has no locks, or after ``wait`` seconds.
+    """
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)  # Numba's, made on its first save
+        held = open(path, "a")
+    except OSError:
+        return None
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            fcntl.flock(held.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return held
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.02)
+        except OSError:  # no locks here (some network file systems)
+            break
+    held.close()
+    return None
+
+
+def compile_once(dispatcher):
+    """Make the processes that compile ``dispatcher`` at once take turns.
+
+    Numba looks in the cache, and compiles on a miss, with nothing shared
+    between processes: test workers or a pool of processes starting on a
+    fresh install all compile the same kernels at the same time (on two
+    cores, two test workers each spent about 90 s compiling the coherent
+    scan). Here a compile takes a lock file beside the kernel's cache index
+    first, and Numba's own ``compile`` then looks in the cache under it, so
+    the process that waited loads what the first one compiled. The lock is
+    taken after this process's compiler lock, so threads of one process
+    never wait on each other's file lock; a kernel's compile locks the
+    kernels it calls after it, in the order of the calls, which has no
+    cycles, so processes cannot deadlock. With no cache, no file locks, or
+    a wait over ``COMPILE_WAIT``, the kernel compiles as before.
+    """
+    if not hasattr(dispatcher, "overloads"):
+        return dispatcher  # NUMBA_DISABLE_JIT=1: the plain Python function
+    compile = dispatcher.compile
+
+    def locked(sig):
+        path = _lock_path(dispatcher)
+        args, _ = sigutils.normalize_signature(sig)
+        if path is None or path in _HELD or tuple(args) in dispatcher.overloads:
+            return compile(sig)
+        with global_compiler_lock:
+            held = _acquire(path, COMPILE_WAIT)
+            if held is None:
+                return compile(sig)
+            _HELD.add(path)
+            try:
+                return compile(sig)
+            finally:
+                _HELD.discard(path)
+                held.close()  # closing the file releases the lock
+
+    dispatcher.compile = locked
+    return dispatcher
+
+
 def jit(func=None, runtime=False, **overrides):
     """``numba.njit`` with the project's options (``parallel=True`` may be added).
 
@@ -281,7 +371,7 @@ def jit(func=None, runtime=False, **overrides):
         options["_nrt"] = False
 
     def build(f):
-        dispatcher = numba.njit(**options)(f)
+        dispatcher = compile_once(numba.njit(**options)(f))
         return Guarded(dispatcher) if options.get("parallel") else dispatcher
 
     return build if func is None else build(func)

@@ -185,6 +185,56 @@ def test_a_kernel_cached_under_other_numba_settings_is_compiled_again(tmp_path):
     assert run() == ["0", "1"]
 
 
+SLOW_TO_COMPILE = """
+import math
+import numpy as np
+from logsph_trace._jit import jit
+@jit(runtime=True)
+def wave(x):
+    values = np.empty(64)
+    for k in range(64):
+        values[k] = math.sin(k * x) / (k + 1) + math.cos(k * x + 1.0) / (k * k + 1)
+    order = np.argsort(values)
+    total = 0.0
+    for k in range(64):
+        total += values[order[k]] * math.exp(-k * x * x) + np.median(values[:k + 1])
+    return total
+"""
+
+TOGETHER = """
+import os, sys, time
+from pkg.main import wave
+open(f"ready-{os.getpid()}", "w").close()
+while not os.path.exists("go"):
+    time.sleep(0.001)
+wave(0.5)
+print(wave.stats.cache_hits.get(wave.signatures[0], 0))
+"""
+
+
+def test_processes_compiling_one_kernel_at_once_compile_it_once(tmp_path):
+    """Test workers (or a user's pool) starting together on a fresh install each
+    compiled every kernel: Numba shares nothing between processes until a
+    kernel is cached. With the lock file beside the cache index
+    (``_jit.compile_once``), one process compiles and the other, which
+    waited, loads the kernel from the cache."""
+    import time
+
+    _package(tmp_path, SLOW_TO_COMPILE, "")
+    code = "import logsph_trace._jit as j; j.cache_by_package('pkg')\n" + TOGETHER
+    env = dict(os.environ, LOGSPH_TRACE_CACHE="1", PYTHONDONTWRITEBYTECODE="1")
+    env.pop("NUMBA_BOUNDSCHECK", None)
+    workers = [subprocess.Popen([sys.executable, "-c", code], cwd=tmp_path, env=env,
+                                stdout=subprocess.PIPE, text=True) for _ in range(2)]
+    deadline = time.monotonic() + 120.0
+    while len(list(tmp_path.glob("ready-*"))) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)  # until both have imported Numba and wait for the word
+    (tmp_path / "go").write_text("")
+    hits = sorted(worker.communicate(timeout=300)[0].split() for worker in workers)
+    assert all(worker.returncode == 0 for worker in workers)
+    assert hits == [["0"], ["1"]]  # one compiled it, the other loaded it
+
+
 def test_the_package_kernels_are_checked_against_all_its_sources():
     from pathlib import Path
 
