@@ -11,6 +11,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 
 import numpy as np
 import pytest
@@ -118,32 +119,37 @@ def read():
 
 def _package(tmp_path, main, probe):
     """A package ``pkg`` in ``tmp_path`` whose ``main.py`` is ``main``, its kernels
-    cached by the package's locator. Returns the package's folder and
+    cached by the package's locator. Returns the package's folder,
     ``run(**settings)``: ``probe`` in a fresh interpreter there, with those
     environment variables (and no Numba setting of the caller's), as the
-    words it prints."""
+    words it prints, and ``start()``: the same probe started, its
+    ``subprocess.Popen`` (stdout piped) returned at once."""
     package = tmp_path / "pkg"
     package.mkdir()
     (package / "__init__.py").write_text("")
     (package / "main.py").write_text(main)
-    code = "import logsph_trace._jit as j; j.cache_by_package('pkg')\n" + probe
+    command = [sys.executable, "-c",
+               "import logsph_trace._jit as j; j.cache_by_package('pkg')\n" + probe]
     base = {key: value for key, value in os.environ.items()
             if key not in ("NUMBA_BOUNDSCHECK", "NUMBA_DEBUGINFO", "NUMBA_ENABLE_PROFILING")}
     base.update(LOGSPH_TRACE_CACHE="1", PYTHONDONTWRITEBYTECODE="1")
 
     def run(**settings):
-        return subprocess.run([sys.executable, "-c", code], cwd=tmp_path,
-                              env=dict(base, **settings), check=True, capture_output=True,
-                              text=True, timeout=300).stdout.split()
+        return subprocess.run(command, cwd=tmp_path, env=dict(base, **settings), check=True,
+                              capture_output=True, text=True, timeout=300).stdout.split()
 
-    return package, run
+    def start():
+        return subprocess.Popen(command, cwd=tmp_path, env=base, stdout=subprocess.PIPE,
+                                text=True)
+
+    return package, run, start
 
 
 def test_a_cached_kernel_recompiles_when_a_helper_in_another_file_changes(tmp_path):
     """Numba alone checks a cached kernel against its own file, so ``read`` would
     keep returning the old ``VALUE`` it inlined from ``helper.py``; the package's
     locator checks it against every source file of its package."""
-    package, run = _package(
+    package, run, _ = _package(
         tmp_path, STALE_CALLER,
         "from pkg.main import read; from pkg.helper import value; "
         "print(read(), value(), read.stats.cache_hits.get(read.signatures[0], 0), "
@@ -170,7 +176,7 @@ def test_a_kernel_cached_under_other_numba_settings_is_compiled_again(tmp_path):
     checks, or with the debug info ``NUMBA_ENABLE_PROFILING=1`` turns on for
     perf, would be loaded by every later run, and one cached without them by
     a run that asks for them. The package's stamp holds those settings."""
-    _, run = _package(
+    _, run, _ = _package(
         tmp_path, PEEK,
         "import numpy as np\nfrom pkg.main import peek\n"
         "try:\n    peek(np.zeros(1), 1); checked = 0\n"
@@ -218,14 +224,8 @@ def test_processes_compiling_one_kernel_at_once_compile_it_once(tmp_path):
     kernel is cached. With the lock file beside the cache index
     (``_jit.compile_once``), one process compiles and the other, which
     waited, loads the kernel from the cache."""
-    import time
-
-    _package(tmp_path, SLOW_TO_COMPILE, "")
-    code = "import logsph_trace._jit as j; j.cache_by_package('pkg')\n" + TOGETHER
-    env = dict(os.environ, LOGSPH_TRACE_CACHE="1", PYTHONDONTWRITEBYTECODE="1")
-    env.pop("NUMBA_BOUNDSCHECK", None)
-    workers = [subprocess.Popen([sys.executable, "-c", code], cwd=tmp_path, env=env,
-                                stdout=subprocess.PIPE, text=True) for _ in range(2)]
+    _, _, start = _package(tmp_path, SLOW_TO_COMPILE, TOGETHER)
+    workers = [start() for _ in range(2)]
     deadline = time.monotonic() + 120.0
     while len(list(tmp_path.glob("ready-*"))) < 2 and time.monotonic() < deadline:
         time.sleep(0.01)  # until both have imported Numba and wait for the word
