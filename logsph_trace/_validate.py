@@ -17,7 +17,7 @@ from .kernels import locate as _locate
 _FULL_TURN_TOL = 1e-12
 
 
-_SQRT_MAX = math.sqrt(np.finfo(np.float64).max)  # ~1.34e154: larger numbers square to inf
+_FLOAT_MAX = float(np.finfo(np.float64).max)
 
 
 def count(name, value):
@@ -117,13 +117,35 @@ def edges(name, edges):
     return array
 
 
-def squares_finite(name, rho_edges):
-    """Reject a rho_max whose square (the kernels compare squared distances) overflows."""
-    if not rho_edges[-1] <= _SQRT_MAX:
-        raise ValueError(
-            f"{name} must be below about 1e154 so that its square is finite, "
-            f"got {float(rho_edges[-1])!r}"
-        )
+# The lengths traces are exact for (docs/geometry.md, "Supported magnitudes").
+# Within them every square and product of squares the kernels form stays a
+# normal float64; outside, squares underflow to 0 or overflow to inf.
+SMALLEST_LENGTH = 1e-100
+LARGEST_LENGTH = 1e100
+# Origins farther than this many rho_max from the centre: rounding of the line
+# (eps |o|) and the slivers absorbed (1e-12 of the scene) outgrow the cells.
+# (``TOO_FAR`` says it in words.)
+FARTHEST = 1e9
+
+
+def rho_scale(rho_edges, low_name, high_name):
+    """Reject radii outside ``[SMALLEST_LENGTH, LARGEST_LENGTH]`` (``rho_edges[0]`` may be 0).
+
+    ``low_name`` and ``high_name`` name the argument that gave the first
+    and the last edge.
+    """
+    positive = rho_edges[rho_edges > 0.0]
+    if positive[-1] > LARGEST_LENGTH:
+        name, bad = high_name, rho_edges[-1]
+    elif positive[0] < SMALLEST_LENGTH:
+        name, bad = low_name if rho_edges[0] > 0.0 else high_name, positive[0]
+    else:
+        return
+    raise ValueError(
+        f"{name} must lie within [{SMALLEST_LENGTH:g}, {LARGEST_LENGTH:g}], got {float(bad)!r}: "
+        "traces are exact for lengths in that range (rho_min may be 0); measure in another "
+        "unit to bring the grid into it"
+    )
 
 
 def theta_width(low, high, name):
@@ -171,6 +193,9 @@ def choice(name, value, options):
 NOT_FINITE = "{name} must be finite; row {row} is {value}"
 TOO_LONG = ("{name} must be shorter than about 1e154 (its square must be finite); "
             "row {row} is {value}")
+TOO_FAR = ("{name} must lie within 1e9 rho_max ({reach:.3g}) of the grid's centre, where "
+           "traces are exact; row {row} is {value}, {distance:.3g} away (a mix-up of units or "
+           "frames?)")
 ZERO = "{name} must be non-zero; row {row} is {value}"
 NEGATIVE = "{name} must be >= 0 (inf allowed); row {row} is {value}"
 
@@ -287,12 +312,29 @@ def unit_directions(directions, name="directions"):
     return np.ascontiguousarray(directions / norms[:, None])
 
 
-def origin_size(name, origins):
-    """Reject origins beyond ~1.3e154, whose squared length (the kernels use it) overflows."""
+def reach(grid):
+    """How far from ``grid``'s centre an origin may lie: ``FARTHEST`` rho_max."""
+    return FARTHEST * grid.rho_max
+
+
+def _too_far(name, row, value, limit):
+    return ValueError(TOO_FAR.format(name=name, reach=limit, row=row, value=value,
+                                     distance=math.hypot(*value)))
+
+
+def origin_size(name, origins, limit=math.inf):
+    """Reject origins whose squared length overflows, or farther than ``limit``.
+
+    The kernels use the squared length; ``limit`` is :func:`reach` of the grid.
+    """
     squares = np.einsum("ij,ij->i", origins, origins)
     if not np.all(np.isfinite(squares)):
         row = int(np.argmin(np.isfinite(squares)))
         raise ValueError(TOO_LONG.format(name=name, row=row, value=origins[row].tolist()))
+    beyond = squares > limit * limit
+    if np.any(beyond):
+        row = int(np.argmax(beyond))
+        raise _too_far(name, row, origins[row].tolist(), limit)
     return origins
 
 
@@ -318,11 +360,12 @@ def shared_rows(origins, directions, repeat=_repeat_row):
     return origins, directions
 
 
-def rays(origins, directions):
+def rays(origins, directions, limit=math.inf):
     """Check a batch of rays: C-contiguous (m, 3) float64 origins and unit directions.
 
     ``directions=None`` reads (m, 6) rows of origin + direction; otherwise a
     single origin or direction is shared by every ray (:func:`shared_rows`).
+    Origins farther than ``limit`` from the centre are an error (:func:`reach`).
     """
     if directions is None:
         array = real_array("origins", origins)
@@ -338,9 +381,9 @@ def rays(origins, directions):
         # Every row checked and scaled in one pass; on a fault, the checks in
         # turn below name the first (the units are the same array for array).
         units = np.empty(origins.shape)
-        if _locate.unit_rays(origins, directions, units):
+        if _locate.unit_rays(origins, directions, units, min(limit * limit, _FLOAT_MAX)):
             return origins, units
-    origins = origin_size("origins", vectors("origins", origins))
+    origins = origin_size("origins", vectors("origins", origins), limit)
     return origins, unit_directions(vectors("directions", directions))
 
 
@@ -419,12 +462,17 @@ def vector(name, value):
     raise ValueError(f"{name} must be one vector of shape (3,), got shape {np.shape(value)}")
 
 
-def point(name, value):
-    """One position: :func:`vector` whose squared length is finite (see :func:`origin_size`)."""
+def point(name, value, limit=math.inf):
+    """One position: a finite :func:`vector` at most ``limit`` from the centre.
+
+    Its squared length must be finite too (see :func:`origin_size`).
+    """
     array = vector(name, value)
     x, y, z = array.tolist()
     if not math.isfinite(x * x + y * y + z * z):
         raise ValueError(TOO_LONG.format(name=name, row=0, value=[x, y, z]))
+    if not math.hypot(x, y, z) <= limit:
+        raise _too_far(name, 0, [x, y, z], limit)
     return array
 
 

@@ -197,7 +197,8 @@ def default_ray_count(grid, origin, half_angle):
     poles cells are narrower in theta than ``s``, so thin polar cells can
     still fall between rays.
     """
-    return _ray_count(grid, validate.point("origin", origin), validate.half_angle(half_angle))
+    return _ray_count(grid, validate.point("origin", origin, validate.reach(grid)),
+                      validate.half_angle(half_angle))
 
 
 def _ray_count(grid, origin, half_angle):
@@ -243,7 +244,7 @@ def _sigma(half_angle, weighting, sigma):
 def sample_rays(grid, origin, direction, half_angle, n_rays, pattern, weighting, sigma):
     """Directions and weights of a cone's rays (``n_rays=None``: the default count)."""
     half_angle = validate.half_angle(half_angle)
-    origin = validate.point("origin", origin)
+    origin = validate.point("origin", origin, validate.reach(grid))
     direction = validate.unit("direction", direction)
     if n_rays is None:
         n_rays = _ray_count(grid, origin, half_angle)
@@ -436,7 +437,7 @@ def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibona
     """
     validate.grid(grid)
     validate.device(device)
-    origin = validate.point("origin", origin)
+    origin = validate.point("origin", origin, validate.reach(grid))
     directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
                                       weighting, sigma)
     if device == "cuda":
@@ -470,7 +471,7 @@ def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fi
     validate.device(device)
     origins, directions = validate.shared_rows(validate.vectors("origins", origins),
                                                validate.vectors("directions", directions))
-    origins = validate.origin_size("origins", origins)
+    origins = validate.origin_size("origins", origins, validate.reach(grid))
     n_cones = origins.shape[0]
     half_angles = validate.half_angles("half_angles", half_angles, n_cones)
     directions = validate.unit_directions(directions)

@@ -97,7 +97,7 @@ def rho_edges_for(rho_min, rho_max, n_rho, spacing="log"):
         edges = np.linspace(rho_min, rho_max, n_rho + 1)
     edges[0] = rho_min
     edges[-1] = rho_max
-    validate.squares_finite("rho_max", edges)
+    validate.rho_scale(edges, "rho_min", "rho_max")
     if not np.all(np.diff(edges) > 0):
         raise ValueError(f"n_rho={n_rho} is too fine for rho in ({rho_min!r}, {rho_max!r})")
     return edges
@@ -174,7 +174,7 @@ class Grid:
         phi = validate.edges("phi_edges", phi_edges)
         if rho[0] < 0:
             raise ValueError(f"rho_edges[0] must be >= 0, got {rho[0]!r}")
-        validate.squares_finite("rho_edges", rho)
+        validate.rho_scale(rho, "rho_edges", "rho_edges")
         if validate.theta_width(theta[0], theta[-1], "theta_edges"):
             theta[-1] = theta[0] + 2 * np.pi
         validate.phi_range(phi[0], phi[-1], "phi_edges")

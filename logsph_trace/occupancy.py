@@ -27,6 +27,7 @@ from ._files import atomic_write, npz_path
 from .cone import aggregate_cone, cones_on_gpu, sample_rays
 from .grid import Grid
 from .kernels import occupancy as _kernels
+from .kernels.exact import AT_CENTRE
 from .sensor import depth_to_points
 from .trace import cuda_backend, trace_many
 
@@ -403,7 +404,9 @@ class OccupancyGrid:
             labels = validate.labels("labels", labels, (rows,))
             if keep is not None:
                 labels = labels[keep]
-        origin = validate.point("sensor_origin", sensor_origin)
+        origin = validate.point("sensor_origin", sensor_origin, validate.reach(self.grid))
+        if math.hypot(*origin.tolist()) < AT_CENTRE * self.grid.rho_max:
+            origin = np.zeros(3)  # at the centre, as a trace from there is (AT_CENTRE)
         at_centre = not any(origin.tolist())  # every ray radial: the egocentric case
         if max_range is None:
             max_range = np.inf
@@ -661,7 +664,7 @@ def gaze_targets(occupancy, origin, direction, threshold=0.6):
     """
     _check_occupancy(occupancy)
     threshold = validate.probability("threshold", threshold)
-    origin = validate.point("origin", origin)
+    origin = validate.point("origin", origin, validate.reach(occupancy.grid))
     direction = validate.vector("direction", direction)
     ray = trace_many(occupancy.grid, origin, direction, parallel=False)[0]
     if len(ray) == 0:
@@ -722,7 +725,7 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
     free_below = validate.number("free_below", free_below, "a probability in [0, 1]")
     if not 0.0 <= free_below <= 1.0:
         raise ValueError(f"free_below must be a probability in [0, 1], got {free_below!r}")
-    origin = validate.point("origin", origin)
+    origin = validate.point("origin", origin, validate.reach(grid))
     directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
                                           weighting, sigma)
     # Traced as trace_cone traces; each cell's first-occupied probability is

@@ -115,7 +115,7 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     validate.host_only(device, origins=origins, directions=directions, t_max=t_max)
     if device == "cuda" and any(validate.on_gpu(v) for v in (origins, directions, t_max)):
         return cuda_backend().trace_gpu_inputs(grid, origins, directions, t_max)
-    origins, directions = validate.rays(origins, directions)
+    origins, directions = validate.rays(origins, directions, validate.reach(grid))
     parallel = bool(parallel)
     if method == "exact":
         t_max = validate.distances(t_max, origins.shape[0])

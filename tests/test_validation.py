@@ -30,7 +30,7 @@ PI = np.pi
         (dict(theta_range=(0.0,)), "theta_range must be a pair"),
         (dict(phi_range=(-2.0, 0.0)), r"phi_range must lie in \[-pi/2, pi/2\]"),
         (dict(phi_range=(0.5, 0.5)), "phi_range must be increasing"),
-        (dict(rho_max=1e155), "rho_max must be below about 1e154"),
+        (dict(rho_max=1e155), r"rho_max must lie within \[1e-100, 1e\+100\]"),
     ],
 )
 def test_bad_grid(kwargs, match):
@@ -50,7 +50,7 @@ def test_bad_grid(kwargs, match):
         (([1], [0, 1], [0, 1]), "at least 2 edges"),
         (([-1, 2], [0, 1], [0, 1]), r"rho_edges\[0\] must be >= 0"),
         (([1, np.nan], [0, 1], [0, 1]), "rho_edges must be finite"),
-        (([1, 1e160], [0, 1], [0, 1]), "rho_edges must be below about 1e154"),
+        (([1, 1e160], [0, 1], [0, 1]), "rho_edges must lie within"),
         (([[1, 2]], [0, 1], [0, 1]), "rho_edges must be 1-D"),
         ((["a", "b"], [0, 1], [0, 1]), "rho_edges must be a 1-D array of numbers"),
     ],

@@ -66,6 +66,11 @@ THROUGH_AXIS_SQ = (4.0 * EPSILON) ** 2
 # can tell, when |a| is at most this share of d_y^2 + tan^2 d_h^2
 # (``_cone_times``).
 PARALLEL = 16.0 * EPSILON
+# An origin nearer the centre than this share of rho_max is traced from the
+# centre itself (``ray_start``): everything it meets on its way out of that
+# neighbourhood is a sliver, and below about 1e-154 the squares that tell
+# where its line passes underflow.
+AT_CENTRE = 1e-20
 
 
 @jit
@@ -91,6 +96,31 @@ def _plane_time(eye_x, eye_z, dx, dz, edge_sin, edge_cos):
     holding back the sweep past the axis, and at 1e-15 by the eye.
     """
     return -(eye_x * edge_cos - eye_z * edge_sin) / (dx * edge_cos - dz * edge_sin)
+
+
+@jit(inline="always")
+def _other_half_now(t_candidate, t_run, eye_x, eye_z, dx, dz, edge_sin, edge_cos, slack):
+    """A half-plane's crossing ``t_candidate``, or ``t_run`` (now) where the line meets
+    the half-plane's plane on the other half, beyond the y axis.
+
+    A sweep counts the half-planes between its start zone and its limit's,
+    and its line meets each one's plane once. Where that is on the other
+    half, the half-plane itself lies within rounding of the sweep's start:
+    the lookup put the start across an edge that the stored edge, rounded
+    off the true angle (-pi/2 is 6.1e-17 rad off), leaves on the near side.
+    A source on the half-plane looking along it across the y axis, 4e-17
+    rad off it, meets the other half beyond the axis: a crossing there would
+    hold every crossing after it back. Within the products' rounding of the
+    axis the half is not told. A crossing scenes in the past is one at
+    infinity (``_at_infinity``), left to the sweep's end.
+    """
+    along_eye = eye_x * edge_sin + eye_z * edge_cos
+    along = t_candidate * (dx * edge_sin + dz * edge_cos)
+    # A line parallel to the plane meets it at infinity (``t_candidate`` inf),
+    # on the half its direction points along.
+    beyond = along_eye + along < -4.0 * EPSILON * (abs(along_eye) + abs(along))
+    other = beyond | (along == -np.inf)
+    return t_run if other and t_candidate > t_run - 1e9 * slack else t_candidate
 
 
 @jit
@@ -389,6 +419,10 @@ def theta_times(eye_x, eye_z, dx, dz, t_start, jt, jt_limit, th_sigma, th_steps,
     for step in range(th_steps):
         edge = _theta_edge_ahead(zone, th_sigma, n_theta, theta_full)
         t_candidate = _plane_time(eye_x, eye_z, dx, dz, theta_sin[edge], theta_cos[edge])
+        if step == 0:
+            # Only the sweep's first half-plane can lie within rounding of its start.
+            t_candidate = _other_half_now(t_candidate, t_run, eye_x, eye_z, dx, dz,
+                                          theta_sin[edge], theta_cos[edge], slack)
         t_low = t_run
         t_run, _ = _clamp(t_candidate, t_run, np.inf)
         if t_run > t_final:
@@ -478,7 +512,10 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
         disc = half_b * half_b - a * c
         q = -(half_b + math.copysign(math.sqrt(max(disc, 0.0)), half_b))
         u1 = q / a
-        u2 = c / q
+        # A tangency's double root is q / a. ``c / q`` is that root only when
+        # c = half_b^2 / a exactly, and c cancels when the closest point lies
+        # on the cone: over a q of ~0 its rounding puts the root scenes away.
+        u2 = c / q if disc > 0.0 else u1
         crossing = _pick_crossing(t_closest + u1, t_closest + u2, cy + u1 * dy, cy + u2 * dy,
                                   nappe, disc, a, rise, spread, dy, first_branch, earliest)
         out[k] = plane if nappe == 0.0 else crossing
@@ -549,7 +586,10 @@ def _flat_cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cx,
         q = -(half_b + root)
         y1 = (tan2 * (cab * dy - cy * b2) - dy * root) / a
         y2 = (tan2 * (cy * cab - ca2 * dy) - cy * root) / q
-        row[first + k] = _pick_crossing(t_closest + q / a, t_closest + c / q, y1, y2,
+        u1 = q / a
+        u2 = c / q if disc > 0.0 else u1  # a tangency's double root (``_cone_times``)
+        y2 = y2 if disc > 0.0 else y1
+        row[first + k] = _pick_crossing(t_closest + u1, t_closest + u2, y1, y2,
                                         phi_nappe[low + k], disc, a, rise, spread, dy,
                                         first_branch, earliest)
 
@@ -666,7 +706,8 @@ def ray_start(origins, directions, row, rho_edges, rho_kind, per_log):
     (rho falls until then and rises after, Eq. 9a), and the origin's distance
     from the centre. ``ir_turn == n_rho``: beyond rho_max and moving away,
     never inside. ``per_log``: ``per_log_of(rho_edges, rho_kind)``, a constant
-    of the grid (a logarithm, so a caller with many rays takes it once).
+    of the grid (a logarithm, so a caller with many rays takes it once). An
+    origin within ``AT_CENTRE`` rho_max of the centre is the centre.
     """
     ox = origins[row, 0]
     oy = origins[row, 1]
@@ -676,6 +717,11 @@ def ray_start(origins, directions, row, rho_edges, rho_kind, per_log):
     dz = directions[row, 2]
     t_closest, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
     radius = math.sqrt(ox * ox + oy * oy + oz * oz)
+    if radius < AT_CENTRE * rho_edges[rho_edges.shape[0] - 1]:
+        # At the centre (``AT_CENTRE``). Taken after the common case's set-up,
+        # not before it: waiting on the square root cost 2% (``bench.ab``).
+        ox, oy, oz, radius = 0.0, 0.0, 0.0, 0.0
+        t_closest, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
     ir = locate_in(radius, rho_edges, rho_kind, per_log)
     ir_turn = ir
     if t_closest > 0.0:

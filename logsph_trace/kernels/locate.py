@@ -171,14 +171,15 @@ def row_norms(vectors, out):
 
 
 @jit(parallel=True)
-def unit_rays(origins, directions, units):
+def unit_rays(origins, directions, units, reach2):
     """Check a batch of rays and scale its directions to unit length, on all threads.
 
     ``units[r] = directions[r] / norm3(directions[r])``, the same divisions
     as ``_validate.unit_directions``. Returns whether every row is valid:
-    finite coordinates, an origin whose squared length is finite, a
-    non-zero direction. When not, the caller checks again row by row to
-    name the first fault (``x * 0.0`` is 0 only for a finite x).
+    finite coordinates, an origin whose squared length is at most
+    ``reach2`` (finite), a non-zero direction. When not, the caller checks
+    again row by row to name the first fault (``x * 0.0`` is 0 only for a
+    finite x).
     """
     n = origins.shape[0]
     bad = 0
@@ -188,7 +189,7 @@ def unit_rays(origins, directions, units):
             x, y, z = origins[row, 0], origins[row, 1], origins[row, 2]
             a, b, c = directions[row, 0], directions[row, 1], directions[row, 2]
             length = norm3(a, b, c)
-            flawed |= not ((x * x + y * y + z * z) * 0.0 == 0.0
+            flawed |= not (x * x + y * y + z * z <= reach2
                            and a * 0.0 + b * 0.0 + c * 0.0 == 0.0 and length > 0.0)
             units[row, 0] = a / length
             units[row, 1] = b / length
