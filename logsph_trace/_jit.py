@@ -36,9 +36,11 @@ up in use anyway, every parallel kernel runs under one lock
 (:class:`Guarded`): concurrent calls then take turns instead of aborting.
 """
 
+import contextlib
 import ctypes
 import hashlib
 import os
+import signal
 import sys
 import threading
 import time
@@ -95,8 +97,43 @@ def _needs_lock():
     return _layer == "workqueue"
 
 
+@contextlib.contextmanager
+def interrupts_after():
+    """Hold Ctrl-C (SIGINT) back until the block ends, then deliver it.
+
+    A parallel kernel calls into Python now and then (Numba unpickles what it
+    needs at run time), and Python runs a pending signal's handler at such a
+    call. There ``KeyboardInterrupt`` surfaced as a ``SystemError`` from the
+    dispatcher, with the kernel's threads still writing into arrays being
+    freed: the process could crash. While the block runs, a SIGINT is only
+    recorded; afterwards the handler in place before is restored and the
+    signal raised again, so it acts as it would have (``KeyboardInterrupt``
+    by default). Python handles signals in its main thread only, so other
+    threads run the block as it is.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received = []
+    try:
+        previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    except ValueError:  # not the main interpreter
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if received:
+            signal.raise_signal(signal.SIGINT)
+
+
 class Guarded:
-    """A parallel kernel that takes a lock around each call where the layer needs it."""
+    """A parallel kernel, run so that Ctrl-C waits for it to end.
+
+    See :func:`interrupts_after`. Calls take turns under a lock where the
+    threading layer needs it.
+    """
 
     def __init__(self, dispatcher):
         self.dispatcher = dispatcher
@@ -105,10 +142,11 @@ class Guarded:
 
     def __call__(self, *args):
         """Run the kernel (under the lock on the workqueue layer)."""
-        if _needs_lock():
-            with _PARALLEL_LOCK:
-                return self.dispatcher(*args)
-        return self.dispatcher(*args)
+        with interrupts_after():
+            if _needs_lock():
+                with _PARALLEL_LOCK:
+                    return self.dispatcher(*args)
+            return self.dispatcher(*args)
 
     def __getattr__(self, name):
         return getattr(self.dispatcher, name)
