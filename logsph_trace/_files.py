@@ -5,7 +5,9 @@ own directory (so the final rename never crosses file systems). Only when the
 caller's block finishes is the file flushed, fsynced and moved over the target
 with ``os.replace``, which is atomic on POSIX and Windows. On any failure --
 a full disk, an exception, Ctrl-C -- the temporary file is removed and the old
-target, if there was one, is left exactly as it was.
+target, if there was one, is left exactly as it was. A file replaced keeps its
+permissions, and a symbolic link keeps pointing at the file it names, which
+gets the new contents.
 """
 
 import contextlib
@@ -22,10 +24,24 @@ def _default_mode():
     return 0o666 & ~mask
 
 
+def _mode_of(path):
+    """Return the permissions of ``path``, or those a new file gets under the umask."""
+    try:
+        return os.stat(path).st_mode & 0o7777
+    except FileNotFoundError:
+        return _default_mode()
+
+
 @contextlib.contextmanager
 def atomic_write(path):
-    """Write ``path`` all or nothing: ``with atomic_write(path) as stream: ...``."""
-    path = Path(path)
+    """Write ``path`` all or nothing: ``with atomic_write(path) as stream: ...``.
+
+    An existing file keeps its permissions. A symbolic link is written
+    through: its target gets the new contents (atomically, beside it) and
+    the link stays a link.
+    """
+    path = Path(os.path.realpath(path))
+    mode = _mode_of(path)
     try:
         descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.",
                                                  suffix=".part")
@@ -33,7 +49,7 @@ def atomic_write(path):
         raise FileNotFoundError(errno.ENOENT, f"no such directory: '{path.parent}'",
                                 str(path)) from None
     try:
-        os.fchmod(descriptor, _default_mode())  # mkstemp makes it private (0600)
+        os.fchmod(descriptor, mode)  # mkstemp makes it private (0600)
         with os.fdopen(descriptor, "wb") as stream:
             yield stream
             stream.flush()

@@ -11,6 +11,7 @@ looked at.
 """
 
 import contextlib
+import functools
 import math
 import threading
 import time
@@ -204,6 +205,17 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, w
     return int(started), int(ended), int(straight)
 
 
+def _one_at_a_time(method):
+    """Run ``method`` under its map's lock, so that threads sharing a map take turns."""
+
+    @functools.wraps(method)
+    def locked(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+
+    return locked
+
+
 class _Probability:
     """An attribute that holds a probability in (low, high), checked on every assignment.
 
@@ -267,6 +279,13 @@ class OccupancyGrid:
     ------
     RuntimeError
         ``device="cuda"`` without a usable GPU or numba-cuda.
+
+    Notes
+    -----
+    A map may be shared by threads: its methods, the assignments above and
+    the gaze functions that read it take turns on a lock of the map's own,
+    so each scan is applied whole. Changing ``log_odds`` in place, outside
+    those calls, is not guarded.
     """
 
     p_hit = _Probability(0.5, 1.0)
@@ -283,12 +302,22 @@ class OccupancyGrid:
         validate.fits("grid", int(np.prod(grid.shape, dtype=np.float64)) * 9,
                       f"an occupancy map of {grid.shape} cells")
         self._grid = grid
+        self._lock = threading.RLock()  # one thread at a time changes or reads the map
         self._last_scan = None
         self._labels = np.zeros(grid.shape, dtype=np.int32)
         self.p_hit, self.p_miss, self.p_min, self.p_max = p_hit, p_miss, p_min, p_max
         if log_odds is None:
             log_odds = np.zeros(grid.shape, dtype=np.float32)
         self.log_odds = log_odds
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        del state["_lock"]  # a lock is not copied: each copy gets its own
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.RLock()
 
     @property
     def grid(self):
@@ -306,7 +335,8 @@ class OccupancyGrid:
         # any other shape, layout or a read-only buffer would be written out of
         # bounds, lost in a copy, or refused by Numba.
         value = validate.log_odds(value, self._grid.shape)
-        self._log_odds = value if self._cuda is None else self._cuda.to_device(value)
+        with self._lock:
+            self._log_odds = value if self._cuda is None else self._cuda.to_device(value)
 
     @property
     def device(self):
@@ -356,6 +386,7 @@ class OccupancyGrid:
         threshold = validate.probability("threshold", threshold)
         return np.argwhere(self._host_log_odds() > _logit(threshold)).astype(np.int32)
 
+    @_one_at_a_time
     def integrate(self, points, sensor_origin, max_range=None, invalid="raise", labels=None):
         """Integrate one scan: free space along each sensor ray, its end cell occupied.
 
@@ -472,7 +503,8 @@ class OccupancyGrid:
         labels = validate.labels("labels", value, self.grid.shape)
         if labels.size and labels.max() > np.iinfo(np.int32).max:
             raise ValueError(f"labels must fit in int32, got {int(labels.max())}")
-        self._labels = labels.astype(np.int32)
+        with self._lock:
+            self._labels = labels.astype(np.int32)
 
     def _vote(self, hits, labels):
         """Give each cell hit in this scan the label most of its hits carry."""
@@ -508,6 +540,7 @@ class OccupancyGrid:
         """
         return self._last_scan
 
+    @_one_at_a_time
     def integrate_depth(self, depth, intrinsics, pose=None, max_range=None, depth_scale=1.0,
                         labels=None):
         """Integrate one depth image from a camera at ``pose``.
@@ -551,6 +584,7 @@ class OccupancyGrid:
         self._last_scan = ScanStats(self._last_scan.rays, self._last_scan.invalid + scan.invalid)
         return self
 
+    @_one_at_a_time
     def decay(self, factor):
         """Fade the map towards unknown: ``log_odds *= factor`` (a short-term memory).
 
@@ -566,6 +600,7 @@ class OccupancyGrid:
             self._cuda.decay(self._flat(), np.float32(factor))
         return self
 
+    @_one_at_a_time
     def save(self, path):
         """Write the map and its grid to a ``.npz`` file; return the path written.
 
@@ -672,7 +707,9 @@ def gaze_targets(occupancy, origin, direction, threshold=0.6):
     _, first = np.unique(ray.cells, axis=0, return_index=True)
     first = np.sort(first)  # each cell at its first entry, in order of distance
     cells = ray.cells[first]
-    probability = 1.0 / (1.0 + np.exp(-occupancy._values_at(cells).astype(np.float64)))
+    with occupancy._lock:
+        values = occupancy._values_at(cells)
+    probability = 1.0 / (1.0 + np.exp(-values.astype(np.float64)))
     above = probability > threshold
     return GazeTargets(cells[above], probability[above], ray.t_enter[first][above])
 
@@ -730,12 +767,14 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
                                           weighting, sigma)
     # Traced as trace_cone traces; each cell's first-occupied probability is
     # summed in the same chunked pass that sums a cone's weights.
-    fixation = (occupancy._flat(), min_distance, unknown, free_below)
-    if occupancy.device == "cuda":
-        cells, values, t_first = cones_on_gpu(grid, origin[None], [(directions, ray_weights)],
-                                              fixation)[0]
-    else:
-        cells, values, t_first = aggregate_cone(grid, origin, directions, ray_weights, fixation)
+    with occupancy._lock:  # not changed by another thread meanwhile
+        fixation = (occupancy._flat(), min_distance, unknown, free_below)
+        if occupancy.device == "cuda":
+            cells, values, t_first = cones_on_gpu(grid, origin[None],
+                                                  [(directions, ray_weights)], fixation)[0]
+        else:
+            cells, values, t_first = aggregate_cone(grid, origin, directions, ray_weights,
+                                                    fixation)
     if dense:
         out = np.zeros(grid.shape)
         out[tuple(cells.T)] = values
