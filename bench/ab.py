@@ -1,8 +1,15 @@
-"""A/B of the serial exact trace: this working tree against another commit.
+"""A/B of a workload: this working tree against another commit.
 
     python -m bench.ab 5c4c438             # 100,000 rays, 128^3 cells, 10 rounds
     python -m bench.ab HEAD --rounds 6     # A/A: how far from 1 the probe itself reads
     python -m bench.ab main~3 --rays 20000 --cells 64 --threads 1
+    python -m bench.ab main~3 --workload occupancy --threads 2
+    python -m bench.ab main~3 --workload cone --threads 2
+
+``--workload``: ``trace`` (the default: ``bench.run``'s serial ``trace_many``),
+``occupancy`` (``bench.occupancy``'s table scan integrated at the centre and
+10 cm off, the two times summed) or ``cone`` (``bench.cone``'s 1,000-ray cone
+and ``fixation_probability`` on the same gaze, summed).
 
 For kernel changes, whose effect is a few per cent on a machine whose speed
 drifts by more than that. Each round starts one fresh Python for each tree,
@@ -55,6 +62,57 @@ for _ in range({repeats}):
 print(best, segments)
 """
 
+# bench.occupancy's table scan (the scene builds it with numpy alone), at the
+# centre and 10 cm off; the segments slot counts the occupied cells.
+OCCUPANCY_CHILD = """
+import sys, time
+import numpy as np
+import numba
+numba.set_num_threads({threads})
+import logsph_trace as lt
+from logsph_trace.scene import table_scene
+grid = lt.Grid(0.3, 10.0, 64, 360, 180)
+scene, _, _ = table_scene()
+scans = [(s, scene.depth_points(sensor=s)[0]) for s in ((0.0, 0.0, 0.0), (0.06, 0.08, 0.0))]
+occupied = sum(int((lt.OccupancyGrid(grid).integrate(p, s).log_odds > 0).sum()) for s, p in scans)
+best = [float("inf")] * len(scans)
+for _ in range({repeats}):
+    for n, (sensor, points) in enumerate(scans):
+        bvm = lt.OccupancyGrid(grid)
+        start = time.perf_counter()
+        bvm.integrate(points, sensor)
+        best[n] = min(best[n], time.perf_counter() - start)
+print(sum(best), occupied)
+"""
+
+# bench.cone's gaze: a 1,000-ray cone and fixation_probability over the table
+# scene's map; the segments slot counts the cone's cells.
+CONE_CHILD = """
+import sys, time
+import numpy as np
+import numba
+numba.set_num_threads({threads})
+import logsph_trace as lt
+from logsph_trace.scene import table_scene
+grid = lt.Grid(0.3, 10.0, 64, 360, 180)
+scene, _, _ = table_scene()
+bvm = lt.OccupancyGrid(grid).integrate(scene.depth_points(sensor=(0.0, 0.0, 0.0))[0],
+                                       (0.0, 0.0, 0.0))
+origin, gaze, half_angle = (0.4, 1.5, 1.2), (-0.1, -0.4, 1.0), np.radians(5.0)
+calls = [lambda: lt.trace_cone(grid, origin, gaze, half_angle, n_rays=1000),
+         lambda: lt.fixation_probability(bvm, origin, gaze, half_angle=half_angle, n_rays=1000)]
+cells = len(calls[0]().cells)
+best = [float("inf")] * len(calls)
+for _ in range(10 * {repeats}):
+    for n, call in enumerate(calls):
+        start = time.perf_counter()
+        call()
+        best[n] = min(best[n], time.perf_counter() - start)
+print(sum(best), cells)
+"""
+
+CHILDREN = {"trace": CHILD, "occupancy": OCCUPANCY_CHILD, "cone": CONE_CHILD}
+
 
 def run_child(tree, code):
     """Run ``code`` with ``tree``'s package importable; return (seconds, segments)."""
@@ -72,6 +130,7 @@ def main(argv=None):
     parser.add_argument("--rays", type=int, default=100_000)
     parser.add_argument("--cells", type=int, default=128)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--workload", choices=sorted(CHILDREN), default="trace")
     args = parser.parse_args(argv)
     if min(args.rounds, args.repeats, args.rays, args.cells, args.threads) < 1:
         parser.error("--rounds, --repeats, --rays, --cells and --threads must be at least 1")
@@ -79,8 +138,8 @@ def main(argv=None):
                            cwd=ROOT, capture_output=True)
     if known.returncode != 0:
         parser.error(f"{args.rev!r} is not a commit of this repository")
-    code = CHILD.format(threads=args.threads, rays=args.rays, cells=args.cells,
-                        repeats=args.repeats)
+    code = CHILDREN[args.workload].format(threads=args.threads, rays=args.rays,
+                                          cells=args.cells, repeats=args.repeats)
     with tempfile.TemporaryDirectory(prefix="bench-ab-") as scratch:
         other = Path(scratch) / "tree"
         subprocess.run(["git", "worktree", "add", "--detach", "--quiet", str(other), args.rev],
@@ -105,8 +164,10 @@ def main(argv=None):
                            check=False)
     medians = {name: statistics.median(values) for name, values in times.items()}
     ratios = sorted(a / b for a, b in zip(times["this tree"], times[args.rev]))
-    print(f"\n{args.rays:,} rays, {args.cells}^3 cells, {args.threads} thread(s), "
-          f"{args.rounds} rounds, best of {args.repeats} calls per process")
+    what = (f"{args.rays:,} rays, {args.cells}^3 cells" if args.workload == "trace"
+            else f"the {args.workload} workload")
+    print(f"\n{what}, {args.threads} thread(s), {args.rounds} rounds, best of "
+          f"{args.repeats} calls per process")
     print(f"median: this tree {medians['this tree'] * 1e3:.1f} ms, {args.rev} "
           f"{medians[args.rev] * 1e3:.1f} ms")
     print(f"this tree / {args.rev}: {medians['this tree'] / medians[args.rev]:.3f} "

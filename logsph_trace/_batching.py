@@ -325,6 +325,17 @@ def _sampled_bounds(kernels, bound_inputs, n_rays):
     return strata, bounds
 
 
+def _check_output(n_rays, per_ray):
+    """Raise MemoryError, before tracing, when a batch's output cannot fit.
+
+    ``per_ray``: the sampled bounds' segments per ray (upper bounds, 1.0-1.6x
+    the segments traced on bench.run's rays). The output is its segments and
+    the rays' offsets; the chunks' scratch is reused and mostly untouched.
+    """
+    validate.fits("origins", int(per_ray * n_rays) * SEGMENT_BYTES + 8 * n_rays,
+                  f"tracing {n_rays:,} rays (about {int(per_ray * n_rays):,} segments)")
+
+
 def _fits_in_memory(length):
     """Return False when ``length`` segments are known not to fit in the available memory."""
     if length * SEGMENT_BYTES < CHECKED_BYTES:
@@ -366,6 +377,7 @@ def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
     split = int(strata[cut])
     anchor = int(mass[cut - 1]) + worst
     length = anchor + int(mass[-1] - mass[cut - 1]) + worst
+    _check_output(n_rays, float(np.dot(bounds, np.diff(strata))) / n_rays)
     if not _fits_in_memory(length):
         return None
     start = lap("bound", start)
@@ -426,10 +438,11 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
     chunk_rays = max(1, ORDERED_SEGMENTS // worst)
     room = chunk_rays * worst
     length = int(RESERVE_MARGIN * per_ray * n_rays) + room
+    _check_output(n_rays, per_ray)
     if not _fits_in_memory(length):
-        # Reserve what there is: should the output need more, it grows, and
-        # that is checked (a MemoryError with the batch's figures).
-        length = int(validate.available_memory() // SEGMENT_BYTES)
+        # The margin does not fit, the bounds' estimate does: reserve what there
+        # is. Should the output need more, it grows, and that is checked.
+        length = max(int(validate.available_memory() // SEGMENT_BYTES), room)
     start = lap("bound", start)
     # Kept whatever its size: only the pages a chunk writes are ever touched.
     scratch = scratch_segments(2 * workers * room, "ordered", keep=True)
@@ -486,6 +499,8 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
     _exact.bound_counts(origins, directions, args, cumulative[1:])
     np.cumsum(cumulative, out=cumulative)
     regions = cumulative[starts]
+    validate.fits("n_rays", int(regions[-1]) * SEGMENT_BYTES + 16 * n_rays,
+                  f"tracing {n_rays:,} rays of cones (at most {int(regions[-1]):,} segments)")
     cells, t_enter, t_exit = segment_arrays(int(regions[-1]))
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0

@@ -14,6 +14,11 @@ import numpy as np
 
 from .kernels import locate as _locate
 
+try:
+    import resource
+except ImportError:  # Windows
+    resource = None
+
 _FULL_TURN_TOL = 1e-12
 
 
@@ -28,6 +33,18 @@ def count(name, value):
     return int(value)
 
 
+class WrongTypeError(TypeError, ValueError):
+    """Text, None, complex numbers or other objects where numbers belong.
+
+    A ``TypeError``, and a ``ValueError`` too, so that code that catches
+    either of the two for bad input catches it.
+    """
+
+
+def _is_text(value):
+    return isinstance(value, (str, bytes, np.str_, np.bytes_))
+
+
 def _is_complex(value):
     """Whether ``value`` is a complex number or array (``float`` would drop the imaginary part)."""
     return isinstance(value, (complex, np.complexfloating)) or \
@@ -37,33 +54,42 @@ def _is_complex(value):
 def number(name, value, requirement):
     """``value`` as a Python float, else ValueError "``name`` must be ``requirement``, got ...".
 
-    Text, None and complex numbers are refused, each with the argument's name.
+    Text, None, complex numbers and other objects are refused with a
+    :class:`WrongTypeError` (``float`` would parse ``"5"``); a value that is
+    no number for other reasons with a ``ValueError``.
     """
-    if not _is_complex(value):
-        try:
-            return float(value)
-        except (TypeError, ValueError):
-            pass
-    raise ValueError(f"{name} must be {requirement}, got {value!r}")
+    if value is None or _is_text(value) or _is_complex(value):
+        raise WrongTypeError(f"{name} must be {requirement}, got {value!r}")
+    try:
+        return float(value)
+    except TypeError:
+        raise WrongTypeError(f"{name} must be {requirement}, got {value!r}") from None
+    except ValueError:
+        raise ValueError(f"{name} must be {requirement}, got {value!r}") from None
 
 
 def real_array(name, value, requirement="numeric"):
     """``value`` as a float64 array (no copy when it is one), else ValueError naming ``name``.
 
     Integers, booleans and arrays of Python numbers convert as numpy converts
-    them. Text, dates and complex numbers are refused: numpy would parse the
-    text, or drop the imaginary parts with only a warning.
+    them. Text (also inside an object array), dates and complex numbers are
+    refused with a :class:`WrongTypeError`: numpy would parse the text, or
+    drop the imaginary parts with only a warning.
     """
     kind = None
     try:
         array = np.asarray(value)
         kind = array.dtype.kind
-        if kind in "biufO":
+        if kind == "O" and any(x is None or _is_text(x) or _is_complex(x) for x in array.flat):
+            kind = "U"
+        elif kind in "biufO":
             return array.astype(np.float64, copy=False)
     except (TypeError, ValueError):  # ragged rows, objects that are no numbers
         pass
     if kind == "c":
-        requirement = "real, not complex"
+        raise WrongTypeError(f"{name} must be real, not complex, got {value!r}")
+    if kind in "USMmV":
+        raise WrongTypeError(f"{name} must be {requirement}, got {value!r}")
     raise ValueError(f"{name} must be {requirement}, got {value!r}")
 
 
@@ -99,10 +125,7 @@ def pair_range(name, value):
 
 
 def edges(name, edges):
-    try:
-        array = np.array(edges, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a 1-D array of numbers, got {edges!r}") from None
+    array = real_array(name, edges, "a 1-D array of numbers").copy()
     if array.ndim != 1 or array.shape[0] < 2:
         raise ValueError(f"{name} must be 1-D with at least 2 edges, got shape {array.shape}")
     if not np.all(np.isfinite(array)):
@@ -122,6 +145,9 @@ def edges(name, edges):
 # normal float64; outside, squares underflow to 0 or overflow to inf.
 SMALLEST_LENGTH = 1e-100
 LARGEST_LENGTH = 1e100
+# The thinnest radial cell, as a share of rho_max: ten times the slivers a
+# trace absorbs (1e-12 of its scene), so a ray from the centre keeps every shell.
+THINNEST_SHELL = 1e-11
 # Origins farther than this many rho_max from the centre: rounding of the line
 # (eps |o|) and the slivers absorbed (1e-12 of the scene) outgrow the cells.
 # (``TOO_FAR`` says it in words.)
@@ -140,6 +166,15 @@ def rho_scale(rho_edges, low_name, high_name):
     elif positive[0] < SMALLEST_LENGTH:
         name, bad = low_name if rho_edges[0] > 0.0 else high_name, positive[0]
     else:
+        widths = np.diff(rho_edges)
+        thinnest = int(np.argmin(widths))
+        if widths[thinnest] < THINNEST_SHELL * rho_edges[-1]:
+            raise ValueError(
+                f"radial cells must be at least {THINNEST_SHELL:g} rho_max wide, got cell "
+                f"{thinnest} of {widths[thinnest]:.3g} (rho_max {rho_edges[-1]:.3g}): a trace "
+                "absorbs slivers of 1e-12 of its scene, so a ray from the centre would drop "
+                "such a shell that a map's scan marks"
+            )
         return
     raise ValueError(
         f"{name} must lie within [{SMALLEST_LENGTH:g}, {LARGEST_LENGTH:g}], got {float(bad)!r}: "
@@ -278,8 +313,16 @@ def finite_rows(name, value):
     return np.ascontiguousarray(array[keep]), keep
 
 
+# The largest object label: a map stores its labels as int32.
+LARGEST_LABEL = int(np.iinfo(np.int32).max)
+
+
 def labels(name, value, shape):
-    """Object labels: integers >= 0 of ``shape``, as a contiguous int64 array."""
+    """Object labels: integers in ``[0, LARGEST_LABEL]`` of ``shape``, as contiguous int64.
+
+    Compared in their own dtype before any conversion, so that no value
+    wraps (``uint32`` 0xFFFFFFFF is not -1, 2**32 + 5 is not 5).
+    """
     array = np.asarray(value)
     if array.shape != shape:
         raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
@@ -287,6 +330,9 @@ def labels(name, value, shape):
         raise ValueError(f"{name} must be integers (0 = no object), got dtype {array.dtype}")
     if array.size and array.min() < 0:
         raise ValueError(f"{name} must be >= 0 (0 = no object), got {int(array.min())}")
+    if array.size and array.max() > LARGEST_LABEL:
+        raise ValueError(f"{name} must be at most {LARGEST_LABEL:,} (a map stores int32 "
+                         f"labels), got {int(array.max())}")
     return np.ascontiguousarray(array, dtype=np.int64)
 
 
@@ -402,6 +448,9 @@ def distances(t_max, n_rays):
     return np.ascontiguousarray(array)
 
 
+MAX_ITERATIONS = int(np.iinfo(np.int64).max)
+
+
 def bisect_options(grid, default_t, max_iter):
     default_t = number("default_t", default_t, "a positive number")
     if not (np.isfinite(default_t) and default_t > 0):
@@ -409,8 +458,10 @@ def bisect_options(grid, default_t, max_iter):
     if max_iter is None:
         n_rho, n_theta, n_phi = grid.shape
         max_iter = 64 * (2 * n_rho + n_theta + 2 * n_phi + 4)
-    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
-        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
+    if (isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer))
+            or not 1 <= max_iter <= MAX_ITERATIONS):
+        raise ValueError(f"max_iter must be a positive integer up to {MAX_ITERATIONS:,} "
+                         f"(an int64), got {max_iter!r}")
     return default_t, int(max_iter)
 
 
@@ -569,33 +620,84 @@ def _mem_available(meminfo):
         return None
 
 
-# The cgroup's (limit, usage) files: cgroup v2, then v1.
-CGROUP_MEMORY_FILES = (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
-                       ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
-                        "/sys/fs/cgroup/memory/memory.usage_in_bytes"))
+# The memory cgroup's mount, (limit, usage) files, and the controllers field of
+# its line in /proc/self/cgroup: cgroup v2, then v1.
+CGROUP_MEMORY = (("/sys/fs/cgroup", "memory.max", "memory.current", b""),
+                 ("/sys/fs/cgroup/memory", "memory.limit_in_bytes", "memory.usage_in_bytes",
+                  b"memory"))
+
+
+def _cgroup_paths():
+    """Return the process's cgroup path per hierarchy (/proc/self/cgroup): {controllers: path}.
+
+    A v2 line is ``0::/path``; a v1 memory line ``N:memory:/path`` (or
+    ``N:memory,other:/path``). Unknown: the root.
+    """
+    paths = {}
+    for line in (_read_small("/proc/self/cgroup") or b"").splitlines():
+        parts = line.split(b":", 2)
+        if len(parts) == 3:
+            controllers = b"memory" if b"memory" in parts[1].split(b",") else parts[1]
+            paths.setdefault(controllers, parts[2].decode(errors="replace").strip())
+    return paths
+
+
+def _cgroup_room():
+    """Return the least room (limit less usage) of the process's memory cgroups, or None.
+
+    Its own cgroup and each one above it count: a container's limit often
+    sits below the root. cgroup v2 first; v1 only where v2's files are not
+    there. None when no limit is set.
+    """
+    paths = _cgroup_paths()
+    for mount, limit_name, usage_name, controllers in CGROUP_MEMORY:
+        parts = [part for part in paths.get(controllers, "/").split("/") if part]
+        rooms, found = [], False
+        for depth in range(len(parts), -1, -1):  # innermost first, the mount's root last
+            folder = "/".join([mount, *parts[:depth]])
+            limit = _read_small(f"{folder}/{limit_name}")
+            usage = _read_small(f"{folder}/{usage_name}")
+            if limit is None or usage is None:
+                continue
+            found = True
+            try:
+                if limit.strip() != b"max":
+                    rooms.append(int(limit) - int(usage))
+            except ValueError:
+                continue
+        if found:
+            return min(rooms) if rooms else None
+    return None
+
+
+def _address_space_room():
+    """Return ``RLIMIT_AS`` less the process's address space (``VmSize``); None if unlimited."""
+    try:
+        limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+    except (AttributeError, OSError, ValueError):  # no resource module (Windows)
+        return None
+    if limit == resource.RLIM_INFINITY:
+        return None
+    status = b"\n" + (_read_small("/proc/self/status") or b"")
+    at = status.find(b"\nVmSize:")
+    try:
+        used = int(status[at + 8:].split(b"\n", 1)[0].split()[0]) * 1024 if at >= 0 else 0
+    except (ValueError, IndexError):
+        used = 0
+    return limit - used
 
 
 def available_memory():
     """Return the bytes this process can still allocate, or None if unknown.
 
-    The smaller of the system's ``MemAvailable`` and the cgroup's limit less
-    its usage.
+    The smallest of the system's ``MemAvailable``, each enclosing memory
+    cgroup's limit less its usage (v2, or v1), and ``RLIMIT_AS`` less the
+    address space in use.
     """
-    limits = []
     meminfo = _read_small("/proc/meminfo")
-    available = None if meminfo is None else _mem_available(meminfo)
-    if available is not None:
-        limits.append(available)
-    for limit_file, usage_file in CGROUP_MEMORY_FILES:
-        limit, usage = _read_small(limit_file), _read_small(usage_file)
-        if limit is None or usage is None:
-            continue
-        try:
-            if limit.strip() != b"max":
-                limits.append(int(limit) - int(usage))
-        except ValueError:
-            continue
-        break
+    limits = [None if meminfo is None else _mem_available(meminfo), _cgroup_room(),
+              _address_space_room()]
+    limits = [limit for limit in limits if limit is not None]
     return min(limits) if limits else None
 
 

@@ -92,14 +92,14 @@ def _warn(message):
 
 def _read_csv(path):
     """Read an (m, 6) CSV of numbers, with or without one header row."""
-    with open(path) as stream:
+    with open(path, encoding="utf-8-sig") as stream:  # a byte-order mark is no data
         first = stream.readline()
     try:
         [float(field) for field in first.split(",")]
         header = 0
     except ValueError:
         header = 1  # a row of column names
-    return np.loadtxt(path, delimiter=",", ndmin=2, skiprows=header)
+    return np.loadtxt(path, delimiter=",", ndmin=2, skiprows=header, encoding="utf-8-sig")
 
 
 def _load_rays(path):
@@ -118,6 +118,8 @@ def _load_rays(path):
         raise
     except Exception as error:  # noqa: BLE001 - any reader failure is one line
         raise CliError(f"cannot read {path}: {error}") from None
+    if rays.dtype.kind not in "iuf":  # complex, text, objects: name the dtype, not the data
+        raise CliError(f"{path} must hold real numbers, got dtype {rays.dtype}")
     if rays.ndim != 2 or rays.shape[1] != 6:
         raise CliError(f"{path} must hold an (m, 6) array of origin + direction, got {rays.shape}")
     return rays

@@ -164,14 +164,14 @@ def _sample(axes, half_angles, counts, rings, pattern, sigmas):
     (directions (n, 3), angles (n,), weights (n,), ray_at (c + 1,)): cone
     ``c``'s rays are ``ray_at[c]:ray_at[c + 1]``, its weights summing to 1.
     """
-    ray_at = np.zeros(len(counts) + 1, dtype=np.int64)
-    np.cumsum(counts, out=ray_at[1:])
-    n_rays = int(ray_at[-1])
+    n_rays = sum(counts)  # a Python int: checked before numpy sums them in int64
     # The directions and their working arrays, then one trace each: at least 24
     # bytes more per ray for the origins and bounds, and 28 per segment.
     what = (f"a cone of {n_rays:,} rays" if len(counts) == 1
             else f"{len(counts):,} cones of {n_rays:,} rays in all")
     validate.fits("n_rays", n_rays * 256, what)
+    ray_at = np.zeros(len(counts) + 1, dtype=np.int64)
+    np.cumsum(counts, out=ray_at[1:])
     directions = np.empty((n_rays, 3))
     angles = np.empty(n_rays)
     weights = np.empty(n_rays)
@@ -222,8 +222,10 @@ def _ray_counts(grid, origins, half_angles):
             continue
         reach = math.sqrt(x * x + y * y + z * z) + rho_max
         solid_angle = 2.0 * math.pi * (1.0 - math.cos(half_angle))
-        needed = math.ceil(2.0 * solid_angle * (reach / cell_width) ** 2)
-        counts.append(min(max(needed, MIN_DEFAULT_RAYS), MAX_DEFAULT_RAYS))
+        ratio = reach / cell_width  # inf for a cell of 1e-200 rad: then the cap
+        needed = 2.0 * solid_angle * ratio * ratio
+        counts.append(MAX_DEFAULT_RAYS if not needed < MAX_DEFAULT_RAYS
+                      else max(math.ceil(needed), MIN_DEFAULT_RAYS))
     return counts
 
 

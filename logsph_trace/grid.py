@@ -224,6 +224,17 @@ class Grid:
                    phi_range=tuple(np.radians(phi_range)), spacing=spacing)
 
     def _setup(self, rho_edges, theta_edges, phi_edges, spacing, rho_kind, theta_kind, phi_kind):
+        # What a grid and one trace through it hold, all axes together: the
+        # kernels' tables (edges and squares; edges, sines and cosines; edges,
+        # squared tangents, signs, sines and cosines) and a ray's scratch of
+        # crossing times and zones (two int64/float64 rows of 3 x the most
+        # crossings of any family).
+        edges = (rho_edges.size, theta_edges.size, phi_edges.size)
+        tables = 8 * (2 * edges[0] + 3 * edges[1] + 5 * edges[2])
+        scratch = 48 * (max(2 * edges[0] + 1, edges[1] + 1, 2 * edges[2] + 1) + 16)
+        validate.fits("grid", tables + scratch,
+                      f"a grid of {edges[0] - 1:,} x {edges[1] - 1:,} x {edges[2] - 1:,} cells "
+                      "(its tables and a trace's scratch)")
         for array in (rho_edges, theta_edges, phi_edges):
             array.setflags(write=False)
         fields = dict(
@@ -235,6 +246,17 @@ class Grid:
             _narrowest_angle=float(min(np.min(np.diff(theta_edges)), np.min(np.diff(phi_edges)))),
         )
         for name, value in fields.items():
+            object.__setattr__(self, name, value)
+
+    def __setstate__(self, state):
+        # A pickled or deep-copied grid (a spawned worker's) comes back with
+        # writeable arrays: read-only again, and its kernels' bundle made anew.
+        state = dict(state)
+        state.pop("_kernel_args", None)
+        for value in state.values():
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
+        for name, value in state.items():
             object.__setattr__(self, name, value)
 
     def __setattr__(self, name, value):
@@ -435,9 +457,13 @@ def cartesian_to_spherical(points):
     ``theta`` lies in (-pi, pi] and ``phi`` in [-pi/2, pi/2].
     """
     array, single = validate.points("points", points)
-    x, y, z = array[:, 0], array[:, 1], array[:, 2]
+    # Rows whose squares would overflow or underflow are scaled by a power of two
+    # first (exactly), as the kernels' row norms are: [1e-200] * 3 is at 35.26 deg.
+    largest = np.max(np.abs(array), axis=1)
+    _, exponent = np.frexp(np.where((largest > 1e150) | (largest < 1e-150), largest, 1.0))
+    x, y, z = (np.ldexp(array[:, axis], -exponent) for axis in range(3))
     out = np.stack([
-        np.sqrt(x * x + y * y + z * z),
+        np.ldexp(np.sqrt(x * x + y * y + z * z), exponent),
         np.arctan2(x + 0.0, z + 0.0),
         np.arctan2(y + 0.0, np.sqrt(x * x + z * z)),
     ], axis=1)

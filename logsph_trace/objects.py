@@ -135,12 +135,19 @@ def fit_plane(points, tolerance=0.02, iterations=200, seed=0):
     scored = array
     if array.shape[0] > _SCORED_POINTS:
         scored = array[rng.choice(array.shape[0], _SCORED_POINTS, replace=False)]
-    best_count, best = 0, None
+    best_count, best = -1, None
     for _ in range(iterations):
         a, b, c = scored[rng.choice(scored.shape[0], 3, replace=False)]
-        normal = np.cross(b - a, c - a)
+        # Each side scaled to unit length first: at 1e200 the cross product of
+        # the sides overflows, at 1e-200 it underflows to 0.
+        sides = np.array([b - a, c - a])
+        largest = np.max(np.abs(sides), axis=1)
+        if not np.all(largest > 0):
+            continue  # two points at one place: no plane
+        sides /= largest[:, None]  # so that no square below under- or overflows
+        normal = np.cross(*(sides / np.linalg.norm(sides, axis=1)[:, None]))
         length = np.linalg.norm(normal)
-        if not length > 0:
+        if not length > 1e-12:
             continue  # three points on a line: no plane
         normal /= length
         count = np.count_nonzero(np.abs(scored @ normal - normal @ a) <= tolerance)
@@ -149,6 +156,10 @@ def fit_plane(points, tolerance=0.02, iterations=200, seed=0):
     no_plane = ValueError("points lie on one line (or one point): they span no plane")
     if best is None:
         raise no_plane
+    if best_count < 3:
+        spread = float(np.max(np.ptp(array, axis=0)))
+        raise ValueError(f"no plane has 3 points within tolerance={tolerance!r} of it: the "
+                         f"points spread over {spread:.3g}, and the tolerance is in their unit")
     normal, offset = best
     inliers = np.abs(array @ normal + offset) <= tolerance
     # Least squares: the normal is the direction in which the inliers spread least.
@@ -200,6 +211,12 @@ class GazeObjects:
 DEFAULT_HALF_ANGLE = math.radians(5.0)
 
 
+# What gaze_objects passes on to fixation_probability (``dense`` would change
+# the result's type under it).
+_FIXATION_OPTIONS = frozenset(
+    ("pattern", "weighting", "sigma", "unknown", "free_below", "min_distance"))
+
+
 def gaze_objects(occupancy, origin, direction, half_angle=DEFAULT_HALF_ANGLE, n_rays=None,
                  **fixation):
     """Rank the map's objects by the probability that the gaze reaches them first.
@@ -224,6 +241,10 @@ def gaze_objects(occupancy, origin, direction, half_angle=DEFAULT_HALF_ANGLE, n_
     GazeObjects
     """
     _check(occupancy)
+    unknown = sorted(set(fixation) - _FIXATION_OPTIONS)
+    if unknown:
+        raise TypeError(f"gaze_objects() takes no {', '.join(map(repr, unknown))}; it passes "
+                        f"only {sorted(_FIXATION_OPTIONS)} to fixation_probability")
     cells = fixation_probability(occupancy, origin, direction, half_angle=half_angle,
                                  n_rays=n_rays, **fixation)
     labels = occupancy.labels[tuple(cells.cells.T)].astype(np.int64)
@@ -259,11 +280,21 @@ class GazeAccumulator:
     """
 
     def __init__(self, half_life=1.0):
-        self.half_life = validate.finite("half_life", half_life)
-        if not self.half_life > 0:
-            raise ValueError(f"half_life must be positive, got {half_life!r}")
+        self.half_life = half_life
         self._scores = {}
         self._time = None
+
+    @property
+    def half_life(self):
+        """Time for a held score to halve (checked when assigned: positive, finite)."""
+        return self._half_life
+
+    @half_life.setter
+    def half_life(self, value):
+        half_life = validate.finite("half_life", value)
+        if not half_life > 0:
+            raise ValueError(f"half_life must be positive, got {value!r}")
+        self._half_life = half_life
 
     def add(self, objects, time=None):
         """Fade the scores to ``time`` and add a gaze's :class:`GazeObjects`; return self."""

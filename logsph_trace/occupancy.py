@@ -86,7 +86,9 @@ def _coherent_plan(grid, origin, n_rays):
     # bin's limit, which all its rays share, follows the candidates' shadows
     # closely (bench/results/issue12_other_rays.md).
     step = grid._narrowest_angle * rho_min / (rho_min + distance) / BINS_PER_CELL
-    return min(max(math.ceil(2.0 / step), 8), COHERENT_MAX_BINS)
+    if step * COHERENT_MAX_BINS <= 2.0:  # also a step that underflows to 0
+        return COHERENT_MAX_BINS
+    return max(math.ceil(2.0 / step), 8)
 
 
 def _coarsening(per_side, n_rays, extent):
@@ -501,8 +503,6 @@ class OccupancyGrid:
     @labels.setter
     def labels(self, value):
         labels = validate.labels("labels", value, self.grid.shape)
-        if labels.size and labels.max() > np.iinfo(np.int32).max:
-            raise ValueError(f"labels must fit in int32, got {int(labels.max())}")
         with self._lock:
             self._labels = labels.astype(np.int32)
 
@@ -511,9 +511,16 @@ class OccupancyGrid:
         hit = hits >= 0
         if not np.any(hit):
             return
-        span = int(labels.max()) + 1
-        keys, counts = np.unique(hits[hit] * span + labels[hit], return_counts=True)
-        cells, votes = np.divmod(keys, span)
+        # Each (cell, label) pair's count, sorted by cell, then label: no key
+        # like cell * span + label, which overflows for large labels.
+        order = np.lexsort((labels[hit], hits[hit]))
+        sorted_cells, sorted_labels = hits[hit][order], labels[hit][order]
+        new = np.ones(order.shape[0], dtype=bool)
+        new[1:] = ((sorted_cells[1:] != sorted_cells[:-1])
+                   | (sorted_labels[1:] != sorted_labels[:-1]))
+        starts = np.flatnonzero(new)
+        counts = np.diff(np.append(starts, order.shape[0]))
+        cells, votes = sorted_cells[starts], sorted_labels[starts]
         # Per cell the most votes, ties to the smaller label: sort by cell, then
         # by votes down, then by label up; keep each cell's first row.
         order = np.lexsort((votes, -counts, cells))
@@ -639,6 +646,7 @@ class OccupancyGrid:
         path = Path(path)
         validate.device(device)
         try:
+            _check_headers(path)
             with np.load(path, allow_pickle=False) as data:
                 missing = _SAVED_ARRAYS.difference(data.files)
                 if missing:
@@ -652,7 +660,7 @@ class OccupancyGrid:
                 labels = data["labels"] if "labels" in data.files else None  # older files
         except (FileNotFoundError, PermissionError, IsADirectoryError):
             raise
-        except (ValueError, TypeError, KeyError, IndexError, EOFError, OSError,
+        except (ValueError, TypeError, KeyError, IndexError, EOFError, OSError, OverflowError,
                 zipfile.BadZipFile) as error:
             raise ValueError(f"{path} is not a valid OccupancyGrid file: {error}") from None
         try:
@@ -662,6 +670,54 @@ class OccupancyGrid:
             return occupancy
         except ValueError as error:
             raise ValueError(f"{path} is not a valid OccupancyGrid file: {error}") from None
+
+
+def _array_headers(path):
+    """Return {name: (shape, dtype)} of the arrays of a ``.npz`` file, from their headers.
+
+    Only the first bytes of each array are decompressed, so a small file
+    that declares a huge array costs nothing to read.
+    """
+    headers = {}
+    with zipfile.ZipFile(path) as archive:
+        for member in archive.namelist():
+            if not member.endswith(".npy"):
+                continue
+            with archive.open(member) as stream:
+                version = np.lib.format.read_magic(stream)
+                read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                        else np.lib.format.read_array_header_2_0)
+                shape, _, dtype = read(stream)
+            headers[member[:-4]] = (tuple(int(n) for n in shape), dtype)
+    return headers
+
+
+def _check_headers(path):
+    """Refuse a map file whose arrays do not fit its grid, before reading any of them.
+
+    The edges give the grid's shape; ``log_odds`` and ``labels`` must have
+    that shape, the edges must be 1-D, and all of it must fit in memory.
+    """
+    headers = _array_headers(path)
+    missing = _SAVED_ARRAYS.difference(headers)
+    if missing:
+        raise ValueError(f"missing arrays {sorted(missing)}")
+    shape = []
+    for name in ("rho_edges", "theta_edges", "phi_edges"):
+        edges, dtype = headers[name]
+        if len(edges) != 1 or edges[0] < 2 or dtype.kind not in "iuf":
+            raise ValueError(f"{name} must be 1-D with at least 2 numbers, got shape {edges} "
+                             f"of {dtype}")
+        shape.append(edges[0] - 1)
+    for name, kinds in (("log_odds", "iuf"), ("labels", "iub")):
+        if name not in headers:
+            continue
+        declared, dtype = headers[name]
+        if declared != tuple(shape) or dtype.kind not in kinds:
+            raise ValueError(f"{name} must have the grid's shape {tuple(shape)}, got "
+                             f"{declared} of {dtype}")
+    total = sum(math.prod(declared) * dtype.itemsize for declared, dtype in headers.values())
+    validate.fits("path", total, f"reading {path}")
 
 
 # What OccupancyGrid.save must have written; it also writes "labels" (older files

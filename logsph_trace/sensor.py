@@ -126,6 +126,10 @@ def _depth_image(depth, depth_scale):
         raise ValueError(f"depth must be a 2-D image (rows, columns), got shape {array.shape}")
     if array.dtype.kind not in "fiu":
         raise ValueError(f"depth must hold numbers, got dtype {array.dtype}")
+    if not array.dtype.isnative:  # raw 16-bit PGM files are big-endian
+        array = array.astype(array.dtype.newbyteorder("="))
+    if array.dtype == np.float16:  # no float16 arithmetic in the kernels
+        array = array.astype(np.float32)
     scale = validate.finite("depth_scale", depth_scale)
     if not scale > 0.0:
         raise ValueError(f"depth_scale must be positive, got {depth_scale!r}")

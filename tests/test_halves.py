@@ -114,14 +114,21 @@ def test_a_reservation_that_does_not_fit_in_memory_is_not_made(monkeypatch):
     monkeypatch.setattr(_batching, "CHECKED_BYTES", 0)
     monkeypatch.setattr(_validate, "SMALL_REQUEST_BYTES", 0)
     monkeypatch.setattr(_batching, "PARALLEL_MIN_RAYS", 512)
-    monkeypatch.setattr(_validate, "available_memory", lambda: 10_000)
-    assert exact_halves(grid, origins, directions) is None
     monkeypatch.setattr(numba, "get_num_threads", lambda: 2)
-    # The ordered chunks then reserve what there is, and their output, grown
-    # as it must, is checked against the same figure.
+    # Not even the bounds' estimate fits: a MemoryError before any tracing.
+    monkeypatch.setattr(_validate, "available_memory", lambda: 10_000)
+    with pytest.raises(MemoryError, match="origins: tracing 2,000 rays"):
+        exact_halves(grid, origins, directions)
     with pytest.raises(MemoryError, match="origins: tracing 2,000 rays"):
         lt.trace_many(grid, origins, directions, parallel=True)
-    monkeypatch.setattr(_validate, "available_memory", lambda: None)
+    # The estimate fits, the reservation with its margin does not: no halves;
+    # the ordered chunks reserve what there is, which holds the output.
+    strata, bounds = _batching._sampled_bounds(
+        _batching.EXACT_KERNELS, (*_validate.rays(origins, directions), grid.kernel_args()),
+        2000)
+    estimate = float(np.dot(bounds, np.diff(strata))) * _batching.SEGMENT_BYTES + 8 * 2000
+    monkeypatch.setattr(_validate, "available_memory", lambda: int(1.05 * estimate))
+    assert exact_halves(grid, origins, directions) is None
     assert_same(lt.trace_many(grid, origins, directions, parallel=True), want)
 
 

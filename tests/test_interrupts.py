@@ -118,10 +118,14 @@ def test_the_command_line_interrupted_exits_130_with_one_line(tmp_path):
     assert subprocess.run(command, capture_output=True, env=_child_env()).returncode == 0
     (tmp_path / "traces.npz").unlink()
     interrupted = 0
-    for delay in np.random.default_rng(130).uniform(0.9, 2.4, 5):
+    for delay in np.random.default_rng(130).uniform(0.0, 1.0, 5):
         child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                  text=True, env=_child_env())
         try:
+            # The command has started its work once it makes its scratch folder
+            # beside the output (before, Python is still importing).
+            while child.poll() is None and len(list(tmp_path.iterdir())) < 2:
+                time.sleep(0.005)
             time.sleep(delay)
             child.send_signal(signal.SIGINT)
             _, err = child.communicate(timeout=300)

@@ -241,7 +241,7 @@ def _saved(tmp_path, **changes):
     (dict(theta_edges=np.r_[np.nan, SMALL.theta_edges[1:]]), "must be finite"),
     (dict(theta_edges=np.linspace(-5, 5, 37)), "an azimuth range is at most 2"),
     (dict(phi_edges=np.linspace(-3, 3, 19)), r"must lie in \[-pi/2, pi/2\]"),
-    (dict(log_odds=np.zeros((2, 2, 2), dtype=np.float32)), "log_odds has shape"),
+    (dict(log_odds=np.zeros((2, 2, 2), dtype=np.float32)), "log_odds must have the grid's shape"),
     (dict(probabilities=np.array([0.7, 0.4])), "probabilities must hold 4"),
     (dict(probabilities=np.array([0.2, 0.4, 0.1, 0.9])), "p_hit must be in"),
     (dict(spacing=np.array("spiral")), "spacing must be one of"),

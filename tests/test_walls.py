@@ -114,7 +114,8 @@ def test_grids_outside_the_supported_lengths_are_refused(make, match):
 
 
 def test_grids_at_the_edges_of_the_supported_lengths_are_taken():
-    assert lt.Grid(1e-100, 1e100, 8, 8, 8).rho_max == 1e100
+    assert lt.Grid(1e99, 1e100, 8, 8, 8).rho_max == 1e100
+    assert lt.Grid(1e-100, 2e-100, 8, 8, 8).rho_min == 1e-100
     assert lt.Grid(0.0, 1e-99, 8, 8, 8, spacing="uniform").rho_edges[1] >= 1e-100
 
 
@@ -132,7 +133,8 @@ def test_grids_at_the_edges_of_the_supported_lengths_are_taken():
 def test_origins_beyond_the_supported_reach_are_refused(call, name, row):
     """From 1e13 rho_max a ray through the centre would cross nothing."""
     grid = lt.Grid(0.2, 12.0, 16, 24, 12)
-    with pytest.raises(ValueError, match=rf"^{name} must lie within 1e9 rho_max \(1.2e\+10\) "
-                                         rf".* row {row} is \[10000000000000.0, 0.0, 0.0\], 1e\+13 away"):
+    match = (rf"^{name} must lie within 1e9 rho_max \(1.2e\+10\) .* "
+             rf"row {row} is \[10000000000000.0, 0.0, 0.0\], 1e\+13 away")
+    with pytest.raises(ValueError, match=match):
         call(grid, [1e13, 0.0, 0.0])
     call(grid, [0.99e9 * 12.0, 0.0, 0.0])  # inside the reach: traced

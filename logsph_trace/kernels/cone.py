@@ -172,10 +172,15 @@ def sample_cones(axes, half_angles, ray_at, fibonacci, rings, sigmas, directions
         weights[ray] = -0.5 * (angle / sigmas[c]) ** 2 if sigmas[c] > 0 else 0.0
     for c in prange(n_cones):
         largest = -np.inf  # the largest exponent: the ray nearest the axis
+        nearest = np.inf
         for ray in range(ray_at[c], ray_at[c + 1]):
             largest = max(largest, weights[ray])
+            nearest = min(nearest, angles[ray])
         for ray in range(ray_at[c], ray_at[c + 1]):
-            weights[ray] = math.exp(weights[ray] - largest)
+            # A sigma so small that every exponent is -inf (1e-170 rad): all the
+            # weight goes to the rays nearest the axis, the limit of the Gaussian.
+            weights[ray] = (math.exp(weights[ray] - largest) if largest > -np.inf
+                            else (1.0 if angles[ray] == nearest else 0.0))
         normalise(weights[ray_at[c]:ray_at[c + 1]])
 
 
