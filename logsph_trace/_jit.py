@@ -36,8 +36,8 @@ up in use anyway, every parallel kernel runs under one lock
 (:class:`Guarded`): concurrent calls then take turns instead of aborting.
 """
 
-import contextlib
 import ctypes
+import functools
 import hashlib
 import os
 import signal
@@ -97,35 +97,79 @@ def _needs_lock():
     return _layer == "workqueue"
 
 
-@contextlib.contextmanager
-def interrupts_after():
-    """Hold Ctrl-C (SIGINT) back until the block ends, then deliver it.
+# SIGINTs held back while the main thread runs a parallel kernel
+# (``interrupts_after``): how deep it is in such calls, and whether one came.
+_depth = 0
+_received = False
+_NOT_MAIN = object()
+
+
+def _record(signum, frame):
+    global _received
+    _received = True
+
+
+def _hold():
+    """Start holding SIGINT back; return what :func:`_release` needs.
+
+    The handler is swapped before the depth counts it: a KeyboardInterrupt
+    from a signal that came before leaves nothing half done.
+    """
+    global _depth, _received
+    if threading.current_thread() is not threading.main_thread():
+        return _NOT_MAIN  # Python runs signal handlers in the main thread only
+    if _depth:
+        _depth += 1
+        return None  # held already, by an enclosing call
+    _received = False
+    try:
+        previous = signal.signal(signal.SIGINT, _record)
+    except ValueError:  # not the main interpreter
+        return _NOT_MAIN
+    _depth = 1
+    return previous
+
+
+def _release(previous):
+    """Stop holding SIGINT back (``previous``: :func:`_hold`'s); deliver one that came."""
+    global _depth, _received
+    if previous is _NOT_MAIN:
+        return
+    _depth -= 1
+    if previous is None:
+        return
+    signal.signal(signal.SIGINT, previous)
+    if _received:
+        _received = False
+        signal.raise_signal(signal.SIGINT)
+
+
+def interrupts_after(function):
+    """Decorate ``function`` so that Ctrl-C (SIGINT) waits until it returns.
 
     A parallel kernel calls into Python now and then (Numba unpickles what it
     needs at run time), and Python runs a pending signal's handler at such a
     call. There ``KeyboardInterrupt`` surfaced as a ``SystemError`` from the
     dispatcher, with the kernel's threads still writing into arrays being
-    freed: the process could crash. While the block runs, a SIGINT is only
-    recorded; afterwards the handler in place before is restored and the
-    signal raised again, so it acts as it would have (``KeyboardInterrupt``
-    by default). Python handles signals in its main thread only, so other
-    threads run the block as it is.
+    freed: the process could crash. While ``function`` runs, a SIGINT is
+    only recorded; afterwards the handler in place before is restored and
+    the signal raised again, so it acts as it would have
+    (``KeyboardInterrupt`` by default). Every parallel kernel is run so
+    (:class:`Guarded`); a public call that runs several holds the signal
+    once for all of them (swapping the handler costs a few microseconds).
+    Python handles signals in its main thread only, so other threads run
+    ``function`` as it is.
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    received = []
-    try:
-        previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
-    except ValueError:  # not the main interpreter
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-        if received:
-            signal.raise_signal(signal.SIGINT)
+
+    @functools.wraps(function)
+    def holding(*args, **kwargs):
+        previous = _hold()
+        try:
+            return function(*args, **kwargs)
+        finally:
+            _release(previous)
+
+    return holding
 
 
 class Guarded:
@@ -142,11 +186,14 @@ class Guarded:
 
     def __call__(self, *args):
         """Run the kernel (under the lock on the workqueue layer)."""
-        with interrupts_after():
+        previous = _hold()
+        try:
             if _needs_lock():
                 with _PARALLEL_LOCK:
                     return self.dispatcher(*args)
             return self.dispatcher(*args)
+        finally:
+            _release(previous)
 
     def __getattr__(self, name):
         return getattr(self.dispatcher, name)

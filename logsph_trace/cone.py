@@ -14,6 +14,7 @@ import numpy as np
 
 from . import _batching as batching
 from . import _validate as validate
+from ._jit import interrupts_after
 from .grid import Grid
 from .kernels import cone as _cone
 from .kernels import locate as _locate
@@ -393,6 +394,7 @@ def cones_on_gpu(grid, origins, samples, fixation=None):
     return [by_first_reach(*cone, normalise=fixation is None) for cone in unsorted]
 
 
+@interrupts_after
 def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibonacci",
                weighting="gaussian", sigma=None, device="cpu"):
     """Trace a gaze cone through ``grid``.
@@ -450,6 +452,7 @@ def trace_cone(grid, origin, direction, half_angle, n_rays=None, pattern="fibona
     return ConeTrace(cells, weights, t_first, directions, ray_weights, origin, grid, traces)
 
 
+@interrupts_after
 def trace_cones(grid, origins, directions, half_angles, n_rays=None, pattern="fibonacci",
                 weighting="gaussian", sigma=None, device="cpu"):
     """Trace many gaze cones at once (a batch of gaze samples); all rays in one parallel call.

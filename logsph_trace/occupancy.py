@@ -25,6 +25,7 @@ import numpy as np
 from . import _validate as validate
 from ._batching import lap
 from ._files import atomic_write, npz_path
+from ._jit import interrupts_after
 from .cone import aggregate_cone, cones_on_gpu, sample_rays
 from .grid import Grid
 from .kernels import occupancy as _kernels
@@ -388,6 +389,7 @@ class OccupancyGrid:
         threshold = validate.probability("threshold", threshold)
         return np.argwhere(self._host_log_odds() > _logit(threshold)).astype(np.int32)
 
+    @interrupts_after
     @_one_at_a_time
     def integrate(self, points, sensor_origin, max_range=None, invalid="raise", labels=None):
         """Integrate one scan: free space along each sensor ray, its end cell occupied.
@@ -770,6 +772,7 @@ def gaze_targets(occupancy, origin, direction, threshold=0.6):
     return GazeTargets(cells[above], probability[above], ray.t_enter[first][above])
 
 
+@interrupts_after
 def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=None,
                          pattern="fibonacci", weighting="gaussian", sigma=None,
                          unknown=0.0, free_below=0.5, min_distance=0.0, dense=False):

@@ -10,6 +10,7 @@ import numpy as np
 
 from . import _batching as batching
 from . import _validate as validate
+from ._jit import interrupts_after
 from .kernels import bisect as _bisect
 from .kernels import thibaudeau as _thibaudeau
 from .traces import TraceBuffers
@@ -20,6 +21,7 @@ METHODS = ("exact", "bisect", "thibaudeau")
 PAPER_DEFAULT_T = 1.5531  # metres: the step the paper tuned for Algorithm 1 (section 3.2)
 
 
+@interrupts_after
 def trace_many(grid, origins, directions=None, method="exact", parallel=True,
                default_t=PAPER_DEFAULT_T, max_iter=None, t_max=None, out=None, device="cpu"):
     """Trace many rays through ``grid``.
