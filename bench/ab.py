@@ -3,6 +3,7 @@
     python -m bench.ab 5c4c438             # 100,000 rays, 128^3 cells, 10 rounds
     python -m bench.ab HEAD --rounds 6     # A/A: how far from 1 the probe itself reads
     python -m bench.ab main~3 --rays 20000 --cells 64 --threads 1
+    python -m bench.ab main~3 --threads 2 --parallel   # trace_many on both threads
     python -m bench.ab main~3 --workload occupancy --threads 2
     python -m bench.ab main~3 --workload cone --threads 2
 
@@ -53,11 +54,11 @@ radial = rng.normal(size=({rays}, 3))
 radial /= np.linalg.norm(radial, axis=1)[:, None]
 origins = radial * 10.0 * rng.random({rays})[:, None] ** (1 / 3)
 grid = lt.Grid(0.1, 10.0, {cells}, {cells}, {cells}, spacing="log")
-segments = len(lt.trace_many(grid, origins, directions, parallel=False).cells)
+segments = len(lt.trace_many(grid, origins, directions, parallel={parallel}).cells)
 best = float("inf")
 for _ in range({repeats}):
     start = time.perf_counter()
-    lt.trace_many(grid, origins, directions, parallel=False)
+    lt.trace_many(grid, origins, directions, parallel={parallel})
     best = min(best, time.perf_counter() - start)
 print(best, segments)
 """
@@ -131,6 +132,8 @@ def main(argv=None):
     parser.add_argument("--cells", type=int, default=128)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--workload", choices=sorted(CHILDREN), default="trace")
+    parser.add_argument("--parallel", action="store_true",
+                        help="trace: trace_many on all threads (default: one thread)")
     args = parser.parse_args(argv)
     if min(args.rounds, args.repeats, args.rays, args.cells, args.threads) < 1:
         parser.error("--rounds, --repeats, --rays, --cells and --threads must be at least 1")
@@ -139,7 +142,8 @@ def main(argv=None):
     if known.returncode != 0:
         parser.error(f"{args.rev!r} is not a commit of this repository")
     code = CHILDREN[args.workload].format(threads=args.threads, rays=args.rays,
-                                          cells=args.cells, repeats=args.repeats)
+                                          cells=args.cells, repeats=args.repeats,
+                                          parallel=args.parallel)
     with tempfile.TemporaryDirectory(prefix="bench-ab-") as scratch:
         other = Path(scratch) / "tree"
         subprocess.run(["git", "worktree", "add", "--detach", "--quiet", str(other), args.rev],
