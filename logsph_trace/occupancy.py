@@ -449,6 +449,10 @@ class OccupancyGrid:
             max_range = validate.finite("max_range", max_range)
             if not max_range > 0:
                 raise ValueError(f"max_range must be a positive number, got {max_range!r}")
+        # Each ray's hit (8 bytes) and, off the centre, its set-up in the kernels
+        # (16 more; measured: 39 and 118 MB for 5,000,000 points).
+        validate.fits("points", points.shape[0] * (8 if at_centre else 24),
+                      f"integrating {points.shape[0]:,} points")
         log_odds = self._flat()
         self._last_scan = ScanStats(points.shape[0], skipped)
         grid = self.grid

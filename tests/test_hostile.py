@@ -391,3 +391,16 @@ def test_the_available_memory_honours_rlimit_as():
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                          timeout=120)
     assert out.stdout.split() == ["True", "True"], out.stderr
+
+
+@pytest.mark.parametrize("sensor", [[0.0, 0.0, 0.0], [0.12, -0.05, 0.07]])
+def test_a_scan_that_cannot_fit_fails_before_the_map_changes(monkeypatch, sensor):
+    from logsph_trace import _validate
+
+    bvm = lt.OccupancyGrid(GRID).integrate(_scan(), sensor)
+    before = bvm.log_odds.copy()
+    monkeypatch.setattr(_validate, "SMALL_REQUEST_BYTES", 0)
+    _no_memory(monkeypatch, 1000)
+    with pytest.raises(MemoryError, match=r"points: integrating 4,000 points needs about"):
+        bvm.integrate(_scan(1), sensor)
+    np.testing.assert_array_equal(bvm.log_odds, before)
