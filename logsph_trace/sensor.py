@@ -164,10 +164,15 @@ def depth_to_points(depth, intrinsics, pose=None, depth_scale=1.0):
     ValueError
         A depth that is not a 2-D numeric image, bad intrinsics, pose or
         ``depth_scale``.
+    MemoryError
+        The points would not fit in the memory available.
     """
     depth, scale = _depth_image(depth, depth_scale)
     fx, fy, cx, cy, skew = intrinsics_of(intrinsics)
     rotation, translation = pose_of(pose)
+    # Per pixel: the mask (1 byte); per valid pixel: its index, point and
+    # pixel (8 + 24 + 16 bytes). Counted as if every pixel were valid.
+    validate.fits("depth", depth.size * 49, f"back-projecting {depth.size:,} pixels")
     if depth.dtype.kind == "f":
         valid = np.isfinite(depth) & (depth > 0)
     else:

@@ -404,3 +404,12 @@ def test_a_scan_that_cannot_fit_fails_before_the_map_changes(monkeypatch, sensor
     with pytest.raises(MemoryError, match=r"points: integrating 4,000 points needs about"):
         bvm.integrate(_scan(1), sensor)
     np.testing.assert_array_equal(bvm.log_odds, before)
+
+
+def test_a_depth_image_that_cannot_fit_fails_before_it_is_back_projected(monkeypatch):
+    from logsph_trace import _validate
+
+    monkeypatch.setattr(_validate, "SMALL_REQUEST_BYTES", 0)
+    _no_memory(monkeypatch, 1000)
+    with pytest.raises(MemoryError, match=r"depth: back-projecting 48 pixels needs about"):
+        lt.depth_to_points(np.full((6, 8), 2.0), (5.0, 5.0, 4.0, 3.0))
