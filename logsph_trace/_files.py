@@ -14,7 +14,10 @@ import contextlib
 import errno
 import os
 import tempfile
+import zipfile
 from pathlib import Path
+
+import numpy as np
 
 
 def _default_mode():
@@ -71,6 +74,20 @@ def npz_path(path):
     """Return the name ``numpy.savez`` would write: ``path`` with ``.npz`` added if missing."""
     path = Path(path)
     return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+
+
+def write_npz(stream, compress=False, **arrays):
+    """Write ``arrays`` to ``stream`` as ``numpy.savez`` (``savez_compressed``) does.
+
+    The archive is closed however the writing ends: numpy before 1.25 left
+    it open on an exception (Ctrl-C), and its ``__del__``, run later against
+    the closed file, printed a traceback after the command's one line.
+    """
+    compression = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with zipfile.ZipFile(stream, mode="w", compression=compression, allowZip64=True) as archive:
+        for name, array in arrays.items():
+            with archive.open(name + ".npy", mode="w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
 
 
 def write_text(path, text):

@@ -136,7 +136,7 @@ def _trace_batch(grid, rays, out, progress):
 
     from tqdm import tqdm
 
-    from ._files import atomic_write
+    from ._files import atomic_write, write_npz
     from .trace import trace_many
 
     total = rays.shape[0]
@@ -178,7 +178,7 @@ def _trace_batch(grid, rays, out, progress):
                 arrays[name] = np.memmap(Path(scratch) / f"{name}.bin", dtype=dtype, mode="r",
                                          shape=(segments,) + tail)
         with atomic_write(out) as stream:
-            np.savez(stream, offsets=offsets, **arrays)
+            write_npz(stream, offsets=offsets, **arrays)
         del arrays  # release the maps before the scratch folder goes
     return total, segments, time.perf_counter() - start
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from . import _validate as validate
 from ._batching import lap
-from ._files import atomic_write, npz_path
+from ._files import atomic_write, npz_path, write_npz
 from ._jit import interrupts_after
 from .cone import aggregate_cone, cones_on_gpu, sample_rays
 from .grid import Grid
@@ -625,8 +625,8 @@ class OccupancyGrid:
         grid = self.grid
         path = npz_path(path)
         with atomic_write(path) as stream:
-            np.savez_compressed(
-                stream, log_odds=self._host_log_odds(), labels=self._labels,
+            write_npz(
+                stream, compress=True, log_odds=self._host_log_odds(), labels=self._labels,
                 rho_edges=grid.rho_edges,
                 theta_edges=grid.theta_edges, phi_edges=grid.phi_edges,
                 spacing=np.array(grid.spacing),

@@ -255,11 +255,11 @@ def test_an_interrupted_batch_keeps_the_old_output(tmp_path, monkeypatch, capsys
     out = tmp_path / "t.npz"
     out.write_bytes(b"old")
 
-    def interrupted(stream, **arrays):
+    def interrupted(stream, array, **options):  # midway through the first array
         stream.write(b"partial")
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(np, "savez", interrupted)
+    monkeypatch.setattr(np.lib.format, "write_array", interrupted)
     status = cli.main(["trace", "--rays", str(path), "--out", str(out), "--quiet"])
     assert status == 130
     assert "interrupted" in capsys.readouterr().err

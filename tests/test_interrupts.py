@@ -55,25 +55,36 @@ def check():
 
 for call in calls:  # compiled before the signals come
     call()
-interrupted, errors = 0, []
-print("ready", flush=True)
-while not select.select([sys.stdin], [], [], 0)[0]:
-    for call in calls:
+state = {"interrupted": 0, "pending": False, "errors": []}
+
+
+def run():
+    while True:
         try:
-            call()
+            if state["pending"]:  # an interrupted check is checked again
+                check()
+                state["pending"] = False
+            if select.select([sys.stdin], [], [], 0)[0]:
+                return
+            for call in calls:
+                call()
         except KeyboardInterrupt:
-            interrupted += 1
-            while True:  # the check itself may be interrupted: then again
-                try:
-                    check()
-                    break
-                except KeyboardInterrupt:
-                    interrupted += 1
-                except Exception as error:
-                    errors.append(repr(error))
-                    break
+            state["interrupted"] += 1
+            state["pending"] = True
         except Exception as error:
-            errors.append(repr(error))
+            state["errors"].append(repr(error))
+            state["pending"] = False
+
+
+print("ready", flush=True)
+while True:
+    try:
+        run()
+        break
+    except KeyboardInterrupt:  # one that came between the statements of run's loop
+        state["interrupted"] += 1
+        state["pending"] = True
+interrupted, errors = state["interrupted"], state["errors"]
 print("interrupted", interrupted, "errors", errors, flush=True)
 """
 

@@ -150,11 +150,11 @@ def test_a_failed_save_keeps_the_old_map_and_leaves_no_partial_file(tmp_path, mo
     assert old.save(path) == path
     before = path.read_bytes()
 
-    def disk_full(stream, **arrays):
+    def disk_full(stream, array, **options):
         stream.write(b"x" * 1000)
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(np, "savez_compressed", disk_full)
+    monkeypatch.setattr(np.lib.format, "write_array", disk_full)
     with pytest.raises(OSError, match="No space"):
         OccupancyGrid(SMALL).save(path)
     assert path.read_bytes() == before
@@ -196,11 +196,11 @@ def test_an_interrupted_save_keeps_the_old_map(tmp_path, monkeypatch):
     OccupancyGrid(SMALL).save(path)
     before = path.read_bytes()
 
-    def interrupted(stream, **arrays):
+    def interrupted(stream, array, **options):
         stream.write(b"partial")
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(np, "savez_compressed", interrupted)
+    monkeypatch.setattr(np.lib.format, "write_array", interrupted)
     with pytest.raises(KeyboardInterrupt):
         OccupancyGrid(SMALL).save(path)
     assert path.read_bytes() == before
