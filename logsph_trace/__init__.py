@@ -1,15 +1,25 @@
 """logsph_trace: exact, fast ray traversal of bounded log-spherical grids.
 
 Which voxels of a bounded log-spherical grid does a ray cross, in what order,
-and for how long? See ``Grid``, ``trace`` and ``trace_many``.
+and for how long? See ``Grid``, ``trace`` and ``trace_many``; for what a
+person looks at, ``OccupancyGrid``, ``gaze_from_pitch_yaw`` and
+``gaze_objects``.
 """
 
 from importlib import metadata as _metadata
 
-from ._validate import AngleUnitWarning
-from .cone import ConeTrace, trace_cone, trace_cones
+from ._validate import AngleUnitWarning, DepthUnitWarning, UnitWarning
+from .cone import ConeTrace, default_ray_count, trace_cone, trace_cones
 from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
-from .objects import GazeAccumulator, GazeObjects, Plane, fit_plane, gaze_objects, label_objects
+from .objects import (
+    GazeAccumulator,
+    GazeObjects,
+    ObjectHit,
+    Plane,
+    fit_plane,
+    gaze_objects,
+    label_objects,
+)
 from .occupancy import GazeTargets, OccupancyGrid, ScanStats, fixation_probability, gaze_targets
 from .sensor import DepthPoints, Gaze, depth_to_points, gaze_from_pitch_yaw, gaze_from_vector
 from .trace import METHODS, trace, trace_many
@@ -18,6 +28,7 @@ from .traces import Trace, TraceBuffers, Traces
 __all__ = [
     "AngleUnitWarning",
     "ConeTrace",
+    "DepthUnitWarning",
     "Gaze",
     "GazeAccumulator",
     "GazeObjects",
@@ -25,13 +36,16 @@ __all__ = [
     "GazeTargets",
     "Grid",
     "METHODS",
+    "ObjectHit",
     "OccupancyGrid",
     "Plane",
     "ScanStats",
     "Trace",
     "TraceBuffers",
     "Traces",
+    "UnitWarning",
     "cartesian_to_spherical",
+    "default_ray_count",
     "depth_to_points",
     "fit_plane",
     "fixation_probability",

@@ -218,9 +218,9 @@ def _sources_digest(root):
 # the key of Numba's cache index (that holds the signature, the bytecode and
 # the CPU). ``NUMBA_ENABLE_PROFILING=1``, which perf and VTune need, turns on
 # ``NUMBA_DEBUGINFO``, and Numba compiles debug info with every variable kept
-# alive: the exact trace compiled so ran at 1,780 ns a ray against 760
-# (``bench/results/issue12_loop.md``), and without these in the stamp every
-# later run loaded that code from the cache. ``NUMBA_BOUNDSCHECK=1`` the
+# alive: the exact trace compiled so ran at 1,780 ns a ray against 760,
+# and without these in the stamp every later run would load that code from
+# the cache. ``NUMBA_BOUNDSCHECK=1`` the
 # other way round would load kernels that check nothing.
 _CODEGEN_SETTINGS = ("OPT", "DEBUGINFO_DEFAULT", "BOUNDSCHECK", "EXTEND_VARIABLE_LIFETIMES",
                      "LOOP_VECTORIZE", "SLP_VECTORIZE", "USING_SVML")
@@ -327,7 +327,7 @@ class CompileNote(event.Listener):
         after = ("cached for later runs" if CACHE
                  else "not cached: LOGSPH_TRACE_CACHE=0")
         return (f"{self.package}: compiling Numba kernels for their first use "
-                f"(about 10-30 s; {after})...")
+                f"({after})...")
 
     def on_start(self, ev):
         if self.said:

@@ -8,6 +8,7 @@ one, and the value -- before any kernel runs.
 
 import math
 import os
+import sys
 import warnings
 
 import numpy as np
@@ -471,11 +472,10 @@ def half_angle(half_angle, name="half_angle"):
     if not (np.isfinite(value) and 0.0 <= value < np.pi / 2):
         raise ValueError(f"{name} must be in [0, pi/2) radians, got {half_angle!r}")
     if value > DEGREES_LIKELY:
-        warnings.warn(
+        warn(
             f"{name}={value:g} rad is a {math.degrees(value):.1f}-degree cone; angles are in "
             f"radians (np.radians({value:g}) if you meant {value:g} degrees)",
-            AngleUnitWarning, stacklevel=4,
-        )
+            AngleUnitWarning)
     return value
 
 
@@ -532,8 +532,27 @@ def unit(name, value):
     return unit_directions(vector(name, value)[None, :], name)[0]
 
 
-class AngleUnitWarning(UserWarning):
+_PACKAGE = os.path.dirname(os.path.abspath(__file__))
+
+
+def warn(message, category):
+    """Warn, attributed to the user's line: the first caller outside this package."""
+    frame, level = sys._getframe(1), 2  # level 1 is this function
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(_PACKAGE):
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, category, stacklevel=level)
+
+
+class UnitWarning(UserWarning):
+    """An input whose values suggest a mistake of units or frames."""
+
+
+class AngleUnitWarning(UnitWarning):
     """An angle that is probably in degrees where radians are expected."""
+
+
+class DepthUnitWarning(UnitWarning):
+    """A depth image or scan whose scale does not fit the map (millimetres as metres, say)."""
 
 
 # Above this a cone half-angle is more likely degrees typed as radians

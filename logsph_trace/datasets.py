@@ -2,7 +2,7 @@
 
 :func:`motorcycle` is the Middlebury 2014 "Motorcycle" stereo frame that
 scikit-image ships (``pip install "logsph_trace[data]"``), as a depth
-image with its camera.
+image with its camera and an instance image of its objects.
 """
 
 from dataclasses import dataclass
@@ -42,9 +42,22 @@ def box_labels(shape, boxes):
     return labels
 
 
+# The frame's objects as a 2-D instance segmenter would give them:
+# label -> (name, (first column, end column), (first row, end row), (nearest Z, farthest Z)).
+# Each is a box drawn by hand on the left image, cut to the object's depth
+# range (metres), with the floor left out.
+MOTORCYCLE_OBJECTS = {
+    1: ("motorcycle", (95, 660), (55, 460), (0.0, 2.9)),
+    2: ("bench", (20, 210), (110, 300), (2.9, 4.2)),
+    3: ("shelves", (290, 741), (0, 330), (3.3, np.inf)),
+}
+# Pixels whose point lies within this of the fitted floor are floor, not an object (metres).
+_FLOOR_MARGIN = 0.04
+
+
 @dataclass(frozen=True)
 class DepthFrame:
-    """A camera image with its depth and intrinsics.
+    """A camera image with its depth, intrinsics and objects.
 
     Attributes
     ----------
@@ -56,12 +69,19 @@ class DepthFrame:
     intrinsics : numpy.ndarray, float64, shape (3, 3)
         The camera matrix K (OpenCV's convention).
     name : str
+    labels : numpy.ndarray, int32, shape (rows, columns)
+        An instance image of the frame's objects, as a 2-D segmenter gives
+        it: each pixel's object, 0 for none.
+    names : dict of int to str
+        Each object's name, by label.
     """
 
     image: np.ndarray
     depth: np.ndarray
     intrinsics: np.ndarray
     name: str
+    labels: np.ndarray
+    names: dict
 
     @property
     def valid(self):
@@ -76,6 +96,11 @@ def motorcycle():
     ``Z = f B / (d + doffs)``; pixels without ground truth (``inf`` in the
     disparity, not NaN as scikit-image's docstring says) stay ``inf``. An
     indoor garage 2.1-5.3 m deep, 343,274 pixels with depth.
+
+    Its objects (``labels`` and ``names``) are a motorcycle 2.1-2.7 m from
+    the camera, a bench and shelves behind it: boxes drawn by hand, each cut
+    to its object's depth range, with the floor (found by
+    :func:`~logsph_trace.fit_plane`) left out.
 
     Raises
     ------
@@ -95,4 +120,24 @@ def motorcycle():
     intrinsics = np.array([[MOTORCYCLE_FOCAL, 0.0, MOTORCYCLE_CX],
                            [0.0, MOTORCYCLE_FOCAL, MOTORCYCLE_CY],
                            [0.0, 0.0, 1.0]])
-    return DepthFrame(left, depth, intrinsics, "Middlebury 2014 Motorcycle (scikit-image)")
+    labels = _object_labels(depth, intrinsics)
+    names = {label: name for label, (name, *_) in MOTORCYCLE_OBJECTS.items()}
+    return DepthFrame(left, depth, intrinsics, "Middlebury 2014 Motorcycle (scikit-image)",
+                      labels, names)
+
+
+def _object_labels(depth, intrinsics):
+    """Paint MOTORCYCLE_OBJECTS: each box's pixels in its depth range and off the floor."""
+    from . import depth_to_points, fit_plane
+
+    scan = depth_to_points(depth, intrinsics)
+    above_floor = np.zeros(depth.shape, dtype=bool)
+    floor = fit_plane(scan.points, tolerance=0.03)
+    rows, columns = scan.pixels.T
+    above_floor[rows, columns] = floor.distance(scan.points) > _FLOOR_MARGIN
+    labels = np.zeros(depth.shape, dtype=np.int32)
+    for label, (_, (c0, c1), (r0, r1), (near, far)) in MOTORCYCLE_OBJECTS.items():
+        box = (slice(r0, r1), slice(c0, c1))
+        inside = (depth[box] >= near) & (depth[box] < far) & above_floor[box]
+        labels[box][inside] = label
+    return labels

@@ -30,7 +30,7 @@ from .cone import aggregate_cone, cones_on_gpu, sample_rays
 from .grid import Grid
 from .kernels import occupancy as _kernels
 from .kernels.exact import AT_CENTRE
-from .sensor import depth_to_points
+from .sensor import depth_to_points, gaze_pair
 from .trace import cuda_backend, trace_many
 
 
@@ -85,7 +85,7 @@ def _coherent_plan(grid, origin, n_rays):
         return 0
     # Bins a quarter of the narrowest cell as seen from the sensor, so that a
     # bin's limit, which all its rays share, follows the candidates' shadows
-    # closely (bench/results/issue12_other_rays.md).
+    # closely.
     step = grid._narrowest_angle * rho_min / (rho_min + distance) / BINS_PER_CELL
     if step * COHERENT_MAX_BINS <= 2.0:  # also a step that underflows to 0
         return COHERENT_MAX_BINS
@@ -103,8 +103,7 @@ def _coarsening(per_side, n_rays, extent):
     the samples cross most cells near the sensor: twice as wide, the table
     scan 10 cm off took 318 ms instead of 48. The real Motorcycle frame, dense
     (343,274 rays over 41 x 28 degrees), takes a sample per 3 x 3 bins; the
-    table scan (304,000 over 60 x 45) per 4 x 4
-    (bench/results/issue12_other_rays.md).
+    table scan (304,000 over 60 x 45) per 4 x 4 (``python -m bench.occupancy``).
     """
     area = 0.0
     for low_u, high_u, low_v, high_v in extent.tolist():
@@ -206,6 +205,19 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, w
                                                   _kernels.WALK_OTHERS, coarse_bins, first, bins,
                                                   limit, skip, workers)
     return int(started), int(ended), int(straight)
+
+
+def _warn_nothing_inside(grid, origin, points, max_range):
+    """Warn that no point of a scan landed in a cell: likely a mistake of units or frames."""
+    distances = np.linalg.norm(points - origin, axis=1)
+    reach = np.linalg.norm(points, axis=1)
+    validate.warn(
+        f"none of the scan's {points.shape[0]:,} points lies in the map (rho "
+        f"{grid.rho_min:g} to {grid.rho_max:g} from its centre"
+        + ("" if math.isinf(max_range) else f", within max_range={max_range:g} of the sensor")
+        + f"); they lie {np.median(reach):.3g} from the centre (median) and "
+        f"{np.median(distances):.3g} from the sensor: are the points and the grid in one unit "
+        f"(depth_scale) and one frame (pose)?", validate.DepthUnitWarning)
 
 
 def _one_at_a_time(method):
@@ -488,6 +500,8 @@ class OccupancyGrid:
                 _kernels.apply_scan(log_odds, free, words, hits, grid.n_rho,
                                     view, *update, threads)
                 lap("apply", start)
+        if points.shape[0] and isinstance(hits, np.ndarray) and hits.max() < 0:
+            _warn_nothing_inside(grid, origin, points, max_range)
         if labels is not None:
             if not at_centre:  # the walk's hits are column-major (see apply_scan)
                 hit = hits >= 0
@@ -573,7 +587,7 @@ class OccupancyGrid:
             Camera (OpenCV frame: x right, y down, z forward) to map.
             ``None``: the camera at the map's origin looking along +z with
             image-up along +y, so OpenCV's (x, y, z) is the map's (-x, -y, z).
-            ``docs/sensors.md`` draws it.
+            ``docs/how-to/frames.md`` draws it.
         max_range : float, optional
             As for :meth:`integrate`: farther returns clear free space up to
             ``max_range`` and mark no hit.
@@ -750,8 +764,23 @@ def _check_occupancy(occupancy):
         raise ValueError(f"occupancy must be an OccupancyGrid, got {type(occupancy).__name__}")
 
 
-def gaze_targets(occupancy, origin, direction, threshold=0.6):
+def gaze_targets(occupancy, gaze, direction=None, threshold=0.6):
     """Find the cells on the gaze ray whose occupancy exceeds ``threshold`` (Fig. 5's rule).
+
+    The first of three layers of one computation (see
+    :func:`~logsph_trace.gaze_objects`): one ray, and every occupied cell
+    on it, hidden or not.
+
+    Parameters
+    ----------
+    occupancy : OccupancyGrid
+    gaze : Gaze or array_like, shape (3,)
+        A :class:`~logsph_trace.Gaze`, or the eyes' position in the map's
+        frame, with ``direction``.
+    direction : array_like, shape (3,), optional
+        The gaze direction, when ``gaze`` is a position.
+    threshold : float
+        Probability above which a cell counts.
 
     Returns
     -------
@@ -760,6 +789,7 @@ def gaze_targets(occupancy, origin, direction, threshold=0.6):
         at which the gaze first enters each, in order of distance.
     """
     _check_occupancy(occupancy)
+    origin, direction = gaze_pair(gaze, direction)
     threshold = validate.probability("threshold", threshold)
     origin = validate.point("origin", origin, validate.reach(occupancy.grid))
     direction = validate.vector("direction", direction)
@@ -777,7 +807,7 @@ def gaze_targets(occupancy, origin, direction, threshold=0.6):
 
 
 @interrupts_after
-def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=None,
+def fixation_probability(occupancy, gaze, direction=None, half_angle=0.0, n_rays=None,
                          pattern="fibonacci", weighting="gaussian", sigma=None,
                          unknown=0.0, free_below=0.5, min_distance=0.0, dense=False):
     """Probability that each cell is the first occupied cell the gaze meets.
@@ -785,11 +815,17 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
     For one ray, ``P(c) = p_c * prod(1 - p)`` over the cells in front of ``c``;
     for a cone (``half_angle > 0``), summed over its rays by weight. An object
     hidden behind another gets little: the gaze stops at the first one.
+    The second of three layers of one computation (see
+    :func:`~logsph_trace.gaze_objects`, which sums these over objects).
 
     Parameters
     ----------
     occupancy : OccupancyGrid
-    origin, direction : array_like, shape (3,)
+    gaze : Gaze or array_like, shape (3,)
+        A :class:`~logsph_trace.Gaze`, or the eyes' position in the map's
+        frame, with ``direction``.
+    direction : array_like, shape (3,), optional
+        The gaze direction, when ``gaze`` is a position.
     half_angle, n_rays, pattern, weighting, sigma :
         The gaze cone, as for :func:`~logsph_trace.trace_cone`; 0 is one ray.
     unknown : float
@@ -815,6 +851,7 @@ def fixation_probability(occupancy, origin, direction, half_angle=0.0, n_rays=No
         (``t_enter`` is where the gaze first reaches each). Dense: the map.
     """
     _check_occupancy(occupancy)
+    origin, direction = gaze_pair(gaze, direction)
     grid = occupancy.grid
     unknown = validate.number("unknown", unknown, "a probability in [0, 1]")
     if not 0.0 <= unknown <= 1.0:

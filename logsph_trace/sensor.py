@@ -1,6 +1,6 @@
 """Depth cameras: pixels to points in the map's frame.
 
-The frame change is drawn and explained once, in ``docs/sensors.md``. In
+The frame change is drawn and explained once, in ``docs/how-to/frames.md``. In
 short: pixels and camera coordinates follow OpenCV (x right, y down, z
 forward along the optical axis; pixel ``(u, v)`` is column ``u``, row
 ``v``). A ``pose`` takes camera coordinates to the map's frame,
@@ -14,6 +14,7 @@ Pixels holding 0, NaN, infinity or a negative value have no depth: they are
 skipped and counted, not errors.
 """
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,9 @@ from .kernels import sensor as _kernels
 
 # pose=None: OpenCV's (x right, y down, z forward) in the map's frame.
 DEFAULT_ROTATION = np.diag([-1.0, -1.0, 1.0])
+# An integer depth image with depth_scale=1 and a value this large is more
+# likely millimetres than metres (a depth camera sees 0.2 to 10 m).
+MILLIMETRES_LIKELY = 100
 
 
 @dataclass(frozen=True)
@@ -133,6 +137,14 @@ def _depth_image(depth, depth_scale):
     scale = validate.finite("depth_scale", depth_scale)
     if not scale > 0.0:
         raise ValueError(f"depth_scale must be positive, got {depth_scale!r}")
+    if array.dtype.kind in "iu" and scale == 1.0 and array.size:
+        largest = int(array.max())
+        if largest >= MILLIMETRES_LIKELY:
+            validate.warn(
+                f"depth is {array.dtype} with depth_scale=1 and values up to {largest:,}: "
+                f"read as metres, that is {largest / 1000:g} km away. A 16-bit depth camera "
+                f"writes millimetres: pass depth_scale=0.001",
+                validate.DepthUnitWarning)
     return np.ascontiguousarray(array), scale
 
 
@@ -197,8 +209,16 @@ def depth_to_points(depth, intrinsics, pose=None, depth_scale=1.0):
 class Gaze:
     """A gaze in the map's frame: where the eyes are and where they look.
 
-    Unpacks as ``origin, direction``, the arguments of :func:`gaze_objects`,
-    :func:`~logsph_trace.fixation_probability` and :func:`~logsph_trace.trace_cone`.
+    :func:`~logsph_trace.gaze_objects`, :func:`~logsph_trace.fixation_probability`
+    and :func:`~logsph_trace.gaze_targets` take it as it is; it also
+    unpacks as ``origin, direction`` (``lt.trace_cone(grid, *gaze, half_angle)``).
+
+    Attributes
+    ----------
+    origin : numpy.ndarray, float64, shape (3,)
+        The eyes' position in the map's frame.
+    direction : numpy.ndarray, float64, shape (3,)
+        The gaze's unit direction in the map's frame.
     """
 
     origin: np.ndarray
@@ -206,6 +226,18 @@ class Gaze:
 
     def __iter__(self):
         return iter((self.origin, self.direction))
+
+
+def gaze_pair(gaze, direction):
+    """Return ``(origin, direction)`` from a :class:`Gaze`, or from a position and a direction."""
+    if isinstance(gaze, Gaze):
+        if direction is not None:
+            raise TypeError("give a Gaze, or the eyes' position and a direction, not both")
+        return gaze.origin, gaze.direction
+    if direction is None:
+        raise TypeError("direction is missing: give a Gaze (gaze_from_pitch_yaw, "
+                        "gaze_from_vector), or the eyes' position and a direction")
+    return gaze, direction
 
 
 def gaze_from_vector(vector, eyes, pose=None):
@@ -240,12 +272,21 @@ def gaze_from_pitch_yaw(pitch, yaw, eyes, pose=None):
     -cos(pitch) cos(yaw))``, as L2CS-Net's ``gazeto3d`` builds it: positive
     pitch looks up, positive yaw towards the image's left.
 
+    The estimator reports the gaze in the frame of the camera that saw the
+    face, so ``eyes`` and ``pose`` are that camera's too. When the robot's
+    depth camera sees the face, the map built with ``pose=None`` and a gaze
+    built with ``pose=None`` share one frame.
+
     Parameters
     ----------
     pitch, yaw : float
-        Radians.
+        Radians. A pitch beyond pi/2 or either beyond 2 pi in magnitude
+        warns (:class:`~logsph_trace.AngleUnitWarning`): likely degrees.
     eyes : array_like, shape (3,)
-        The eyes' position in the camera's frame.
+        The eyes' position in the camera's frame (OpenCV's: x right, y
+        down, z forward), in metres: from the estimator's face detection,
+        the face's pixel back-projected at its depth, or a face landmark
+        model.
     pose : None, array_like (4, 4), or (R, t)
         The camera's pose in the map (see :func:`pose_of`).
 
@@ -255,5 +296,10 @@ def gaze_from_pitch_yaw(pitch, yaw, eyes, pose=None):
     """
     pitch = validate.finite("pitch", pitch)
     yaw = validate.finite("yaw", yaw)
+    if abs(pitch) > math.pi / 2 or abs(yaw) > 2 * math.pi:
+        validate.warn(
+            f"pitch={pitch:g}, yaw={yaw:g} rad: beyond what a gaze can be in radians (pitch "
+            f"within pi/2, yaw within 2 pi); if they are degrees, pass np.radians(...)",
+            validate.AngleUnitWarning)
     vector = (-np.cos(pitch) * np.sin(yaw), -np.sin(pitch), -np.cos(pitch) * np.cos(yaw))
     return gaze_from_vector(vector, eyes, pose)

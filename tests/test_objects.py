@@ -125,12 +125,17 @@ def test_an_object_across_the_seam_is_one_object():
 def test_the_gaze_names_the_object_on_the_table():
     _, eyes, target, occupancy = _table_map()
     objects = lt.gaze_objects(occupancy, eyes, target - eyes)
-    assert objects.top == 2  # the object (box 1, label 2), not the table under it
+    top = objects.top
+    assert top.id == 2 and top.name is None  # the object (box 1, label 2), not the table
     assert objects.probabilities[0] > objects.probabilities[1:].sum()
     assert np.all(np.diff(objects.probabilities) <= 0)
-    first = objects.first_cells[0]
-    assert occupancy.labels[tuple(first)] == 2
-    assert 0.0 < objects.first_distances[0] < np.linalg.norm(target - eyes) + 0.2
+    assert occupancy.labels[top.cell] == 2
+    assert 0.0 < top.distance < np.linalg.norm(target - eyes) + 0.2
+    axis = (target - eyes) / np.linalg.norm(target - eyes)
+    np.testing.assert_allclose(top.point, eyes + top.distance * axis, rtol=1e-12)
+    cells = np.argwhere(occupancy.labels == 2)
+    assert top.n_cells == len(cells)
+    np.testing.assert_allclose(top.centroid, GRID.cell_centers(cells).mean(axis=0), rtol=1e-12)
 
 
 def test_an_occluded_object_ranks_below_its_occluder():
@@ -146,7 +151,7 @@ def test_an_occluded_object_ranks_below_its_occluder():
     eyes = np.array([0.4, 0.1, 0.4])
     behind = np.array([0.0, 0.0, 3.0])
     objects = lt.gaze_objects(occupancy, eyes, behind - eyes, half_angle=np.radians(2))
-    assert list(objects.labels[:2]) == [1, 2]
+    assert list(objects.ids[:2]) == [1, 2]
     assert objects.probabilities[0] > 2 * objects.probabilities[1]
 
 
@@ -161,14 +166,15 @@ def test_components_name_the_object_when_no_detector_did():
     for centre in ((-0.6, 0.0, 2.0), (0.6, 0.0, 2.0)):
         objects = lt.gaze_objects(occupancy, eyes, np.array(centre) - eyes)
         named = occupancy.labels[tuple(GRID.cell_of(np.array(centre) + [0, 0, 0.05]))]
-        assert objects.top == named != 0
+        assert objects.top.id == named != 0
 
 
 def test_a_held_look_beats_a_glance():
-    glance = lt.GazeObjects(np.array([1]), np.array([0.9]), np.zeros((1, 3), np.int32),
-                            np.array([1.0]), 0.0)
-    look = lt.GazeObjects(np.array([2]), np.array([0.4]), np.zeros((1, 3), np.int32),
-                          np.array([1.0]), 0.0)
+    def seen(label, probability):
+        hit = lt.ObjectHit(label, None, probability, 1.0, np.zeros(3), (0, 0, 0), np.zeros(3), 1)
+        return lt.GazeObjects((hit,), 0.0)
+
+    glance, look = seen(1, 0.9), seen(2, 0.4)
     memory = lt.GazeAccumulator(half_life=0.5).add(glance, time=0.0)
     assert memory.top == 1
     for time in (0.1, 0.2, 0.3):
@@ -231,13 +237,13 @@ def test_leaving_out_the_floor_separates_what_stands_on_it():
     assert np.isclose(floor.offset, 1.2, atol=1e-4)
     assert floor.inliers[labels == 0].all() and not floor.inliers[points[:, 1] > -1.18].any()
     exclude = GRID.count_points(points[floor.inliers]) > 0
-    assert lt.label_objects(occupancy, exclude=exclude) == 1
+    assert lt.label_objects(occupancy, exclude=exclude, replace=True) == 1
     box = occupancy.labels[tuple(GRID.cell_of(points[labels == 1]).T)]
     on_floor = occupancy.labels[tuple(GRID.cell_of(points[labels == 0]).T)]
     assert np.mean(box == 1) > 0.9 and not np.any(on_floor)
     assert not np.any(occupancy.labels[exclude])
     eyes = np.array([1.0, 0.3, 0.5])
-    assert lt.gaze_objects(occupancy, eyes, np.array([0.0, -0.8, 2.3]) - eyes).top == 1
+    assert lt.gaze_objects(occupancy, eyes, np.array([0.0, -0.8, 2.3]) - eyes).top.id == 1
 
 
 def test_fit_plane_finds_a_noisy_plane_among_outliers():
@@ -320,7 +326,7 @@ def test_gaze_objects_checks_its_map():
 
 def test_gazes_at_four_parts_of_the_real_motorcycle():
     # Middlebury 2014 Motorcycle, parts boxed by hand in the image as a 2-D
-    # detector would box them; an eye 1.5 m to the camera's left looks at
+    # detector would box them; an eye 1.5 m to the camera's right looks at
     # the middle of each part through a 5-degree cone: the part comes first.
     pytest.importorskip("skimage")
     from logsph_trace import datasets
@@ -335,7 +341,7 @@ def test_gazes_at_four_parts_of_the_real_motorcycle():
     eyes = np.array([-1.5, 0.3, 0.5])
     for label in datasets.MOTORCYCLE_PARTS:
         target = np.median(scan.points[of_points == label], axis=0)
-        assert lt.gaze_objects(occupancy, eyes, target - eyes).top == label
+        assert lt.gaze_objects(occupancy, eyes, target - eyes).top.id == label
 
 
 def test_without_boxes_the_motorcycle_is_its_own_object():
@@ -357,7 +363,7 @@ def test_without_boxes_the_motorcycle_is_its_own_object():
     assert floor.normal[1] > 0.95 and 1.0 < floor.offset < 1.2  # ~1.1 m below the camera
     exclude = grid.count_points(scan.points[floor.inliers]) > 0
     exclude |= grid.count_points(scan.points) < 3
-    lt.label_objects(occupancy, exclude=exclude)
+    lt.label_objects(occupancy, exclude=exclude, replace=True)
     labels = occupancy.labels[tuple(grid.cell_of(scan.points).T)]
     parts = datasets.box_labels(frame.depth.shape, datasets.MOTORCYCLE_PARTS)
     of_points = parts[scan.pixels[:, 0], scan.pixels[:, 1]]
@@ -369,4 +375,4 @@ def test_without_boxes_the_motorcycle_is_its_own_object():
     eyes = np.array([-1.5, 0.3, 0.5])
     for label in datasets.MOTORCYCLE_PARTS:
         target = np.median(scan.points[of_points == label], axis=0)
-        assert lt.gaze_objects(occupancy, eyes, target - eyes).top == bike
+        assert lt.gaze_objects(occupancy, eyes, target - eyes).top.id == bike
