@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 import logsph_trace as lt
-from logsph_trace._files import save_figure, write_text
+from bench.workload import write_results
+from logsph_trace._files import save_figure
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ORIGIN = (0.0, 20.0, 20.0)
@@ -36,7 +37,7 @@ def main(argv=None):
     bisect_keys = {tuple(c) for c in bisect.cells.tolist()}
     bounds = grid.cell_bounds(exact.cells)
     lines = [
-        f"`python -m bench.fig3`: {grid}; gaze origin {ORIGIN} dm, direction {DIRECTION}.",
+        f"{grid}; gaze origin {ORIGIN} dm, direction {DIRECTION}.",
         "",
         "| # | i | j | k | t_enter (dm) | t_exit (dm) | rho range (dm) | theta (deg) | phi (deg) "
         "| bisect (default_t = 1.5531) |",
@@ -54,10 +55,10 @@ def main(argv=None):
                   f"cells ({len(exact) - len(bisect)} missed); thibaudeau "
                   f"{'reports the same cells as exact' if same else 'DIFFERS from exact'}."]
     text = "\n".join(lines)
-    print(text)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    write_text(RESULTS / "fig3.md", text + "\n")
-    fig = trace_figure(grid, ORIGIN, DIRECTION, exact,
+    write_results("fig3", argv, text, {
+        "cells": exact.cells.tolist(), "t_enter": exact.t_enter.tolist(),
+        "t_exit": exact.t_exit.tolist(), "bisect_cells": bisect.cells.tolist()})
+    fig = trace_figure(grid, ORIGIN, DIRECTION, exact, unit="dm",
                        title="Gaze tracing example (paper Fig. 3), exact method, decimetres")
     save_figure(fig, RESULTS / "fig3.png", dpi=110)
     print(f"wrote {RESULTS / 'fig3.png'}")

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 import logsph_trace as lt
-from logsph_trace._files import save_figure, write_text
+from bench.workload import write_results
+from logsph_trace._files import save_figure
 from logsph_trace.scene import table_scene
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -79,15 +80,21 @@ def figure(grid, result, path):
     for number, (title, cells, color) in enumerate(panels, start=2):
         ax = fig.add_subplot(2, 2, number, projection="3d")
         ax.scatter(points[:, 0], points[:, 2], points[:, 1], s=0.5, color="tab:blue", alpha=0.3)
+        if len(cells):  # only the cells inside the box drawn: 3-D axes clip nothing
+            centres = grid.cell_centers(cells)
+            inside = ((np.abs(centres[:, 0]) < 1.4) & (centres[:, 2] < 3.5)
+                      & (np.abs(centres[:, 1]) < 0.9))
+            cells = cells[inside]
         plot_cells(grid, cells, ax=ax, color=color, alpha=0.35)
         ax.plot(line[:, 0], line[:, 2], line[:, 1], color="gold", linewidth=2)
-        ax.scatter([eyes[0]], [eyes[2]], [eyes[1]], color="tab:green", s=40)
+        ax.scatter([eyes[0]], [eyes[2]], [eyes[1]], marker="*", color="gold", edgecolor="k",
+                   s=160, depthshade=False, label="the person's eyes")
         ax.set_xlim(-1.5, 1.5)
         ax.set_ylim(0.0, 3.6)
         ax.set_zlim(-1.0, 1.0)
-        ax.set_xlabel("x")
-        ax.set_ylabel("z")
-        ax.set_zlabel("y (up)")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("z (m)")
+        ax.set_zlabel("y (m, up)")
         ax.view_init(elev=25, azim=-60)
         ax.set_title(title)
     fig.suptitle("Gaze tracing with the occupancy map (cf. paper Fig. 5)")
@@ -102,7 +109,7 @@ def main(argv=None):
     targets, fixation = result["targets"], result["fixation"]
     object_cells = result["object_cells"]
     lines = [
-        f"`python -m bench.fig5`: {grid}; {result['points'].shape[0]:,} points from a 640 x 480 "
+        f"{grid}; {result['points'].shape[0]:,} points from a 640 x 480 "
         f"depth image, integrated 3 times ({result['integrate_ms']:.1f} ms a scan, all threads); "
         f"eyes at {result['eyes'].tolist()} m looking at {result['target'].tolist()} m.",
         "",
@@ -125,9 +132,9 @@ def main(argv=None):
                   f"(object cells hold {share:.2f} of the "
                   "fixation probability)."]
     text = "\n".join(lines)
-    print(text)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    write_text(RESULTS / "fig5.md", text + "\n")
+    write_results("fig5", argv, text, {
+        "top_is_object": bool(result["top_is_object"]),
+        "fixation_top_is_object": bool(result["fixation_top_is_object"])})
     figure(grid, result, RESULTS / "fig5.png")
     print(f"wrote {RESULTS / 'fig5.png'}")
     return 0 if result["top_is_object"] and result["fixation_top_is_object"] else 1

@@ -1,6 +1,9 @@
 """The ``logsph-trace`` command line.
 
-    logsph-trace demo
+    logsph-trace demo [--synthetic]
+    logsph-trace look DEPTH --intrinsics FX FY CX CY [--depth-scale S] [--labels FILE]
+                      [--names FILE] --eyes X Y Z (--pitch-yaw P Y | --gaze DX DY DZ)
+                      [--half-angle DEG] [--json] [--html FILE]
     logsph-trace trace --grid 0.3,10,64,360,180 --origin 0 2 2 --direction -0.3 -0.01 0
                        [--cone 5] [--format table|json|csv]
     logsph-trace trace --rays rays.npy --out traces.npz
@@ -8,6 +11,7 @@
 
 Errors (bad arguments, unreadable or unwritable files, invalid geometry, not
 enough memory) are one line on stderr and exit status 2, never a traceback;
+warnings (depth that looks like millimetres, say) are one line each;
 Ctrl-C is one line and exit status 130. Angles are in degrees, in and out.
 Output files are written atomically: a failure leaves no partial file and
 keeps an older file of the same name.
@@ -25,8 +29,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-
-from ._files import save_figure
 
 OUT_DIR = Path("logsph-trace-out")
 CHUNK_RAYS = 65_536  # rays per batch chunk: bounds the memory of a large batch
@@ -88,6 +90,11 @@ def _add_grid_options(parser):
 
 def _warn(message):
     print(f"logsph-trace: warning: {message}", file=sys.stderr)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Show a Python warning as the command's own one line."""
+    _warn(str(message))
 
 
 def _read_csv(path):
@@ -202,7 +209,8 @@ def _print_rows(rows, columns, fmt, stream):
                                   for (name, spec), w in zip(columns, widths)) + "\n")
 
 
-def _print_trace(result, fmt, stream):
+def print_trace(result, fmt, stream):
+    """Write one ray's cells as a table, JSON or CSV."""
     rows = [
         {"i": int(c[0]), "j": int(c[1]), "k": int(c[2]), "t_enter": float(a), "t_exit": float(b)}
         for c, a, b in zip(result.cells, result.t_enter, result.t_exit)
@@ -252,6 +260,9 @@ def cmd_trace(args):
         return 0
     if args.origin is None or args.direction is None:
         raise CliError("give --origin X Y Z and --direction X Y Z, or --rays FILE")
+    if args.out:
+        raise CliError("--out writes a batch's traces: it needs --rays FILE (one ray or cone "
+                       "is printed; --format json or csv for a file)")
     if cone:
         if not 0.0 <= args.cone < 90.0:
             raise CliError(f"--cone must be a half-angle in [0, 90) degrees, got {args.cone:g}")
@@ -260,193 +271,137 @@ def cmd_trace(args):
             result = trace_cone(grid, args.origin, args.direction, np.radians(args.cone))
         _print_cone(result, args.format, sys.stdout)
     else:
-        _print_trace(trace(grid, args.origin, args.direction), args.format, sys.stdout)
+        print_trace(trace(grid, args.origin, args.direction), args.format, sys.stdout)
     return 0
 
 
 def cmd_demo(args):
-    """Run the paper's worked example and a gaze cone into the synthetic scene.
-
-    ``--real``: gazes at the parts of the real Motorcycle frame instead.
-    """
+    """``logsph-trace demo``: the main job on the real Motorcycle frame (or ``--synthetic``)."""
     try:
         import matplotlib
     except ImportError:
-        raise CliError("the demo draws figures with matplotlib: pip install 'logsph_trace[plot]'") \
-            from None
-
+        raise CliError("the demo draws figures with matplotlib: pip install "
+                       "'logsph_trace[demo]'") from None
     matplotlib.use("Agg")
-    if args.real:
-        return _real_demo(Path(args.out))
-    from . import Grid, fixation_probability, gaze_targets, trace
-    from .occupancy import OccupancyGrid
-    from .plot import trace_figure
-    from .scene import table_scene
+    from . import demo
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    grid = Grid.from_increments(10.0, 80.0, 10, d_theta=10.0, d_phi=10.0)
-    origin, direction = (0.0, 20.0, 20.0), (-0.3, -0.01, 0.0)
-    exact = trace(grid, origin, direction)
-    bisect = trace(grid, origin, direction, method="bisect")
-    print("The paper's worked example (Fig. 3), decimetres:")
-    print(f"  gaze from {origin} along {direction}: {len(exact)} cells (exact); "
-          f"Algorithm 1 with the paper's default_t reports {len(bisect)}")
-    _print_trace(exact, "table", sys.stdout)
-    figure = trace_figure(grid, origin, direction, exact, title="The paper's Fig. 3 example")
-    save_figure(figure, out / "fig3_worked_example.png", dpi=90)
-
-    scene, eyes, target = table_scene()
-    room = Grid(0.3, 5.0, 32, 120, 60)
-    points, labels, _ = scene.depth_points()
-    bvm = OccupancyGrid(room)
-    for _ in range(3):
-        bvm.integrate(points, [0.0, 0.0, 0.0])
-    targets = gaze_targets(bvm, eyes, target - eyes)
-    fixation = fixation_probability(bvm, eyes, target - eyes, half_angle=np.radians(4))
-    on_object = points[labels == scene.index("object")]
-    object_cells = {tuple(c) for c in room.cell_of(on_object).tolist()}
-    print("\nA person 1.5 m from the robot looks at an object on a table (cf. Fig. 5):")
-    print(f"  {points.shape[0]:,} depth points -> occupancy map {room.shape}")
-    print(f"  {'cell':>16} {'fixation':>9} {'on the object':>14}")
-    for cell, value in zip(fixation.cells[:5].tolist(), fixation.values[:5]):
-        print(f"  {str(tuple(cell)):>16} {value:9.3f} {str(tuple(cell) in object_cells):>14}")
-    top = bool(len(targets)) and tuple(targets.cells[0]) in object_cells
-    print(f"  the first occupied cell on the gaze is on the object: {top}")
-    _scene_figure(room, bvm, eyes, target, targets, points, out / "fig5_gaze_on_object.png")
-    print(f"\nfigures written to {out}/ in {time.perf_counter() - start:.1f} s")
-    return 0
-
-
-def _scene_figure(grid, bvm, eyes, target, targets, points, path):
-    import matplotlib.pyplot as plt
-
-    from .plot import plot_cells
-
-    fig = plt.figure(figsize=(7, 6))
-    ax = fig.add_subplot(projection="3d")
-    cloud = points[::97]
-    ax.scatter(cloud[:, 0], cloud[:, 2], cloud[:, 1], s=0.5, color="tab:blue", alpha=0.3)
-    occupied = bvm.occupied(0.6)
-    near = occupied[grid.rho_edges[occupied[:, 0]] < 3.0]  # the wall behind would hide the rest
-    hit = {tuple(c) for c in targets.cells.tolist()}
-    near = np.array([c for c in near.tolist() if tuple(c) not in hit], dtype=np.int32)
-    plot_cells(grid, near, ax=ax, color="tab:red", alpha=0.06)
-    plot_cells(grid, targets.cells, ax=ax, color="tab:green", alpha=0.9)
-    line = np.stack([eyes, eyes + 1.6 * (target - eyes)])
-    ax.plot(line[:, 0], line[:, 2], line[:, 1], color="gold", linewidth=2)
-    ax.set_xlim(-0.8, 1.2)  # the table, the object and the person
-    ax.set_ylim(1.0, 2.4)
-    ax.set_zlim(-0.8, 0.3)
-    ax.view_init(elev=30, azim=-50)
-    ax.set_xlabel("x")
-    ax.set_ylabel("z")
-    ax.set_zlabel("y (up)")
-    ax.set_title("occupied cells nearer than 3 m (red; the wall is left out),\n"
-                 "the gaze (yellow) and what it lands on (green)")
-    save_figure(fig, path, dpi=90)
-    plt.close(fig)
-
-
-REAL_EYES = (-1.5, 0.3, 0.5)  # a person 1.5 m to the camera's left, metres
-
-
-def _real_demo(out):
-    """Integrate the Motorcycle frame with its parts boxed, gaze at each part."""
-    from . import Grid, OccupancyGrid, depth_to_points, fit_plane, gaze_objects, label_objects
-
+    if args.synthetic:
+        demo.run_synthetic(args.out)
+        return 0
     try:
-        from . import datasets
-
-        frame = datasets.motorcycle()
+        demo.run(args.out)
     except ImportError as error:
-        raise CliError(str(error)) from None
-    out.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    grid = Grid(0.3, 8.0, 64, 360, 180)
-    parts = datasets.MOTORCYCLE_PARTS
-    labels = datasets.box_labels(frame.depth.shape, parts)
-    bvm = OccupancyGrid(grid).integrate_depth(frame.depth, frame.intrinsics, labels=labels)
-    stats = bvm.last_scan
-    print(f"{frame.name}: {stats.rays:,} pixels with depth, {stats.invalid:,} without "
-          f"(skipped) -> occupancy map {grid.shape}, rho 0.3-8 m")
-    scan = depth_to_points(frame.depth, frame.intrinsics)
-    of_points = labels[scan.pixels[:, 0], scan.pixels[:, 1]]
-    eyes = np.array(REAL_EYES)
-    print(f"A person at {REAL_EYES} m looks at each part through a 5-degree cone:")
-    print(f"  {'looks at':>12} {'names':>12} {'probability':>12} {'reached at (m)':>15}")
-    gazes = []
-    for label, (name, _, _) in parts.items():
-        target = np.median(scan.points[of_points == label], axis=0)
-        objects = gaze_objects(bvm, eyes, target - eyes)
-        named = parts[objects.top][0] if objects.top else "nothing"
-        probability = objects.probabilities[0] if len(objects) else 0.0
-        distance = objects.first_distances[0] if len(objects) else np.nan
-        print(f"  {name:>12} {named:>12} {probability:12.3f} {distance:15.2f}")
-        gazes.append((label, target, objects.top))
-    # Without boxes: connected groups of occupied cells, leaving out the
-    # floor (which every object touches) and cells with under 3 points.
-    components = OccupancyGrid(grid).integrate_depth(frame.depth, frame.intrinsics)
-    floor = fit_plane(scan.points, tolerance=0.03)
-    exclude = grid.count_points(scan.points[floor.inliers]) > 0
-    exclude |= grid.count_points(scan.points) < 3
-    count = label_objects(components, exclude=exclude)
-    print(f"Without boxes: label_objects finds {count} objects, leaving out the floor (fitted "
-          f"{floor.offset:.2f} m below the camera) and cells with under 3 points.")
-    point_labels = components.labels[tuple(grid.cell_of(scan.points).T)]
-    tops = [gaze_objects(components, eyes, target - eyes).top for _, target, _ in gazes]
-    for label in dict.fromkeys(tops):
-        mine = point_labels == label
-        distance = np.median(np.linalg.norm(scan.points[mine], axis=1)) if label else np.nan
-        print(f"  {tops.count(label)} of the {len(tops)} gazes name object {label}: "
-              f"{np.count_nonzero(mine):,} points, median {distance:.2f} m away")
-    path = out / "motorcycle_gaze.png"
-    _real_figure(frame, labels, parts, grid, bvm, scan, eyes, gazes, path)
-    print(f"figure written to {path} in {time.perf_counter() - start:.1f} s")
+        raise CliError(f"{error} (the demo needs: pip install 'logsph_trace[demo]')") from None
     return 0
 
 
-def _real_figure(frame, labels, parts, grid, bvm, scan, eyes, gazes, path):
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Rectangle
+# The camera's OpenCV frame (x right, y down, z forward) from the map's, for pose=None.
+CAMERA_FROM_MAP = np.diag([-1.0, -1.0, 1.0])
 
-    colours = {label: colour for label, colour in
-               zip(parts, ("tab:blue", "tab:orange", "tab:green", "tab:purple"))}
-    fig, axes = plt.subplots(2, 2, figsize=(12, 8.5))
-    image, depth, top, side = axes.ravel()
-    image.imshow(frame.image)
-    for label, (name, (c0, c1), (r0, r1)) in parts.items():
-        image.add_patch(Rectangle((c0, r0), c1 - c0, r1 - r0, fill=False, linewidth=2,
-                                  edgecolor=colours[label]))
-        image.text(c0, r0 - 5, f"{label} {name}", color=colours[label], fontsize=9,
-                   fontweight="bold")
-    image.set_title("the left image and the parts boxed by hand (the labels)")
-    shown = depth.imshow(np.where(frame.valid, frame.depth, np.nan), cmap="viridis")
-    fig.colorbar(shown, ax=depth, label="Z (m)")
-    depth.set_title("depth from the ground-truth disparity (white: none, skipped)")
-    occupied = bvm.occupied(0.6)
-    centres = grid.cell_centers(occupied)
-    cell_labels = bvm.labels[tuple(occupied.T)]
-    for ax, (a, b), names in ((top, (0, 2), ("x (m)", "z (m)")), (side, (2, 1),
-                                                                   ("z (m)", "y (m, up)"))):
-        ax.scatter(centres[:, a], centres[:, b], s=0.2, color="0.7")
-        for label, colour in colours.items():
-            mine = centres[cell_labels == label]
-            ax.scatter(mine[:, a], mine[:, b], s=0.5, color=colour)
-        for label, target, named in gazes:
-            reach = np.stack([eyes, eyes + 1.15 * (target - eyes)])
-            ax.plot(reach[:, a], reach[:, b], color=colours.get(named, "k"), linewidth=1.5)
-        ax.plot(eyes[a], eyes[b], "k*", markersize=12)
-        ax.set_xlabel(names[0])
-        ax.set_ylabel(names[1])
-        ax.set_aspect("equal")
-    top.set_title("occupied cells from above, by label; each gaze in the colour of the part "
-                  "it names", fontsize=9)
-    side.set_title("the same from the side; the star is the person's eyes", fontsize=9)
-    fig.tight_layout()
-    save_figure(fig, path, dpi=80)
-    plt.close(fig)
+
+def _read_names(path):
+    """Read a JSON object of label -> name (``{"1": "motorcycle"}``)."""
+    try:
+        with open(path, encoding="utf-8-sig") as stream:
+            names = json.load(stream)
+    except FileNotFoundError:
+        raise CliError(f"no such names file: {path}") from None
+    except (OSError, ValueError) as error:
+        raise CliError(f"cannot read {path} as JSON: {error}") from None
+    if not isinstance(names, dict):
+        raise CliError(f"{path} must hold a JSON object of label -> name, like "
+                       f'{{"1": "motorcycle"}}, got a {type(names).__name__}')
+    try:
+        return {int(label): str(name) for label, name in names.items()}
+    except ValueError:
+        raise CliError(f"{path}: labels must be whole numbers, got "
+                       f"{sorted(names)[:3]}") from None
+
+
+def _look_grid(args, depth_points):
+    """Return the map's grid: --grid, or 0.3 m to past the farthest point, 64 x 360 x 180."""
+    from .grid import Grid
+
+    if args.grid:
+        rho, cells, spacing = _grid_spec(args.grid)
+        return Grid(rho[0], rho[1], *cells, spacing=spacing)
+    farthest = float(np.max(np.linalg.norm(depth_points, axis=1))) if len(depth_points) else 0.0
+    if not farthest > 0.3:
+        raise CliError(f"the depth image has no point beyond 0.3 m (the farthest is "
+                       f"{farthest:.3g} m): is it in metres? (--depth-scale)")
+    return Grid(0.3, math.ceil(farthest * 1.05 * 2) / 2, 64, 360, 180)
+
+
+def cmd_look(args):
+    """``logsph-trace look``: rank the objects a gaze may land on, in a depth image."""
+    from . import OccupancyGrid, depth_to_points, fit_plane, gaze_objects, label_objects
+    from .images import read_image
+    from .sensor import gaze_from_pitch_yaw, gaze_from_vector
+
+    if args.names and not args.labels:
+        raise CliError("--names names the labels of --labels: give --labels FILE too")
+    if not 0.0 <= args.half_angle < 90.0:
+        raise CliError(f"--half-angle must be in [0, 90) degrees, got {args.half_angle:g}")
+    depth = read_image(args.depth, "depth")
+    labels = read_image(args.labels, "labels") if args.labels else None
+    if labels is not None:
+        if labels.shape != depth.shape:
+            raise CliError(f"--labels must match the depth image's {depth.shape[1]} x "
+                           f"{depth.shape[0]} pixels, got {labels.shape[1]} x {labels.shape[0]}")
+        if labels.dtype.kind not in "iu":
+            raise CliError(f"--labels must hold whole numbers, got {labels.dtype}")
+    names = _read_names(args.names) if args.names else None
+    scan = depth_to_points(depth, args.intrinsics, depth_scale=args.depth_scale)
+    grid = _look_grid(args, scan.points)
+    bvm = OccupancyGrid(grid).integrate_depth(depth, args.intrinsics,
+                                              depth_scale=args.depth_scale, labels=labels)
+    if labels is None:  # objects from the map itself: the floor and sparse cells left out
+        exclude = grid.count_points(scan.points) < 3
+        try:
+            floor = fit_plane(scan.points, tolerance=0.03)
+            exclude |= grid.count_points(scan.points[floor.inliers]) > 0
+        except ValueError:
+            pass  # no plane: nothing to leave out
+        label_objects(bvm, exclude=exclude)
+    if args.pitch_yaw is not None:
+        pitch, yaw = args.pitch_yaw
+        gaze = gaze_from_pitch_yaw(math.radians(pitch), math.radians(yaw), args.eyes)
+    else:
+        gaze = gaze_from_vector(args.gaze, args.eyes)
+    objects = gaze_objects(bvm, gaze, half_angle=math.radians(args.half_angle), names=names)
+    rows = []
+    for hit in objects:
+        row = {"object": hit.id}
+        if names is not None:
+            row["name"] = hit.name
+        row.update(probability=hit.probability,
+                   point=[round(v, 4) for v in (CAMERA_FROM_MAP @ hit.point).tolist()],
+                   distance=hit.distance)
+        rows.append(row)
+    if args.json:
+        json.dump(rows, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    elif not rows:
+        print(f"the gaze reaches no object (it stops at unlabelled cells with probability "
+              f"{objects.unlabelled:.3f})")
+    else:
+        print(f"{'rank':>4} {'object':>6} {'name':<16} {'probability':>11} {'distance (m)':>12}  "
+              f"point (m, camera frame)")
+        for rank, row in enumerate(rows, 1):
+            x, y, z = row["point"]
+            print(f"{rank:4d} {row['object']:6d} {str(row.get('name') or '-'):<16} "
+                  f"{row['probability']:11.3f} {row['distance']:12.2f}  "
+                  f"({x:.2f}, {y:.2f}, {z:.2f})")
+    if args.html:
+        from .demo import MAP_AXES
+        from .view import write_view
+
+        try:
+            write_view(args.html, bvm, gaze, objects, math.radians(args.half_angle), names=names,
+                       axis_titles=MAP_AXES, title=f"{Path(args.depth).name}: the gaze")
+        except ImportError as error:
+            raise CliError(str(error)) from None
+    return 0
 
 
 def cmd_bench(args):
@@ -479,20 +434,65 @@ def build_parser():
         description="Exact ray traversal of bounded log-spherical grids (gaze tracing).",
     )
     commands = parser.add_subparsers(dest="command", required=True)
-    demo = commands.add_parser("demo", help="the paper's example and a gaze into a scene")
+    demo = commands.add_parser(
+        "demo", help="which object a person looks at, on a real depth frame",
+        description="Build the occupancy map of the Middlebury Motorcycle frame with its "
+                    "objects, name what each of a few gazes lands on, and write a figure and "
+                    "an interactive 3-D view (pip install 'logsph_trace[demo]').")
     demo.add_argument("--out", default=str(OUT_DIR), help="folder for the figures")
-    demo.add_argument("--real", action="store_true",
-                      help="gazes at the parts of the real Middlebury Motorcycle frame "
-                           "(needs scikit-image: pip install 'logsph_trace[data]')")
+    demo.add_argument("--synthetic", action="store_true",
+                      help="the paper's worked example and a gaze into a synthetic room instead "
+                           "(no data needed)")
     demo.set_defaults(run=cmd_demo)
+    look = commands.add_parser(
+        "look", help="which object a gaze lands on, in a depth image",
+        description="Build an occupancy map from one depth image and rank the objects a gaze "
+                    "may land on. Positions and directions are in the camera's OpenCV frame "
+                    "(x right, y down, z forward), in metres.")
+    look.add_argument("depth", metavar="DEPTH",
+                      help="the depth image: .npy, 16-bit PNG or PFM; metres unless "
+                           "--depth-scale says otherwise; 0, NaN and inf are no depth")
+    look.add_argument("--intrinsics", nargs=4, type=float, required=True,
+                      metavar=("FX", "FY", "CX", "CY"), help="the depth camera's, in pixels")
+    look.add_argument("--depth-scale", type=float, default=1.0, metavar="S",
+                      help="metres per depth unit (0.001 for a millimetre PNG; default 1)")
+    look.add_argument("--labels", metavar="FILE",
+                      help="an instance image aligned with the depth (0: no object), .npy, PNG "
+                           "or PFM; without it, objects are the map's connected groups of "
+                           "occupied cells, the floor left out")
+    look.add_argument("--names", metavar="FILE",
+                      help='a JSON object naming the labels: {"1": "motorcycle", ...}')
+    look.add_argument("--eyes", nargs=3, type=float, required=True, metavar=("X", "Y", "Z"),
+                      help="the eyes' position in the camera's frame (m), as gaze estimators "
+                           "give it")
+    aim = look.add_mutually_exclusive_group(required=True)
+    aim.add_argument("--pitch-yaw", nargs=2, type=float, metavar=("PITCH", "YAW"),
+                     help="degrees, L2CS-Net's convention: 0 0 looks into the camera; positive "
+                          "pitch up, positive yaw to the image's left")
+    aim.add_argument("--gaze", nargs=3, type=float, metavar=("DX", "DY", "DZ"),
+                     help="the gaze direction in the camera's frame (any length)")
+    look.add_argument("--half-angle", type=float, default=5.0, metavar="DEG",
+                      help="the gaze cone's half-angle: the estimator's error (default 5)")
+    look.add_argument("--grid", metavar="SPEC",
+                      help="RHO_MIN,RHO_MAX,N_RHO,N_THETA,N_PHI[,SPACING] in metres (default "
+                           "0.3 m to just beyond the farthest point, 64 x 360 x 180)")
+    look.add_argument("--json", action="store_true",
+                      help="print a JSON list, most probable first")
+    look.add_argument("--html", metavar="FILE.html",
+                      help="also write an interactive 3-D view (pip install "
+                           "'logsph_trace[view]')")
+    look.set_defaults(run=cmd_look)
     trace = commands.add_parser("trace", help="trace one ray, a gaze cone, or a batch file")
-    trace.add_argument("--origin", nargs=3, type=float, metavar=("X", "Y", "Z"))
-    trace.add_argument("--direction", nargs=3, type=float, metavar=("X", "Y", "Z"))
+    trace.add_argument("--origin", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                       help="where the ray starts, in the grid's frame and length unit (the "
+                            "default grid is the paper's example, in decimetres)")
+    trace.add_argument("--direction", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                       help="the ray's direction in the grid's frame (any length)")
     trace.add_argument("--cone", type=float, metavar="DEG", help="gaze cone half-angle in degrees")
     trace.add_argument("--format", choices=["table", "json", "csv"], default="table")
     trace.add_argument("--rays", metavar="FILE",
                        help="(m, 6) origin + direction: .npy (read a chunk at a time) or .csv")
-    trace.add_argument("--out", metavar="FILE.npz", help="where a batch's traces go")
+    trace.add_argument("--out", metavar="FILE.npz", help="where a batch's traces go (--rays only)")
     trace.add_argument("--quiet", action="store_true",
                        help="no progress bar (there is none unless stderr is a terminal)")
     _add_grid_options(trace)
@@ -509,7 +509,9 @@ def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)  # argparse reports its own errors in one line (exit 2)
     try:
-        return args.run(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return args.run(args)
     except BrokenPipeError:
         # The reader (e.g. ``| head``) stopped reading: not our error, no traceback.
         # Point stdout at devnull so the interpreter's final flush cannot fail too.

@@ -40,7 +40,7 @@ def _ray_extent(grid, origin, direction, trace):
     return 2.0 * grid.rho_max + float(np.linalg.norm(origin))
 
 
-def plot_scene(grid, origin, direction, t_max=None, trace=None, ax=None):
+def plot_scene(grid, origin, direction, t_max=None, trace=None, ax=None, unit="m"):
     """Panel (a): the Cartesian scene -- the robot at the origin, the person, the gaze ray.
 
     Parameters
@@ -51,6 +51,8 @@ def plot_scene(grid, origin, direction, t_max=None, trace=None, ax=None):
         Length of the ray drawn; by default up to the trace's last exit.
     trace : Trace, optional
     ax : mpl_toolkits.mplot3d.Axes3D, optional
+    unit : str
+        The grid's length unit, for the axis labels.
     """
     ax = _axes(ax, three_d=True)
     origin, direction = _ray(origin, direction)
@@ -65,24 +67,24 @@ def plot_scene(grid, origin, direction, t_max=None, trace=None, ax=None):
     shell = spherical_to_cartesian(outer)
     ax.plot_wireframe(shell[:, 0].reshape(u.shape), shell[:, 2].reshape(u.shape),
                       shell[:, 1].reshape(u.shape), color="0.8", linewidth=0.4)
-    ax.set_xlabel("x")
-    ax.set_ylabel("z")
-    ax.set_zlabel("y (up)")
+    ax.set_xlabel(f"x ({unit})")
+    ax.set_ylabel(f"z ({unit})")
+    ax.set_zlabel(f"y ({unit}, up)")
     ax.legend(fontsize=7, loc="upper left")
     return ax
 
 
-def plot_rho_phi(grid, origin, direction, t_max=None, trace=None, ax=None):
+def plot_rho_phi(grid, origin, direction, t_max=None, trace=None, ax=None, unit="m"):
     """Panel (b): the ray in the rho-phi plane over the grid's boundaries (log-spaced rho)."""
-    return _plot_rho_angle(grid, origin, direction, t_max, trace, ax, axis="phi")
+    return _plot_rho_angle(grid, origin, direction, t_max, trace, ax, "phi", unit)
 
 
-def plot_rho_theta(grid, origin, direction, t_max=None, trace=None, ax=None):
+def plot_rho_theta(grid, origin, direction, t_max=None, trace=None, ax=None, unit="m"):
     """Draw the ray in the rho-theta plane over the grid's boundaries."""
-    return _plot_rho_angle(grid, origin, direction, t_max, trace, ax, axis="theta")
+    return _plot_rho_angle(grid, origin, direction, t_max, trace, ax, "theta", unit)
 
 
-def _plot_rho_angle(grid, origin, direction, t_max, trace, ax, axis):
+def _plot_rho_angle(grid, origin, direction, t_max, trace, ax, axis, unit="m"):
     ax = _axes(ax)
     origin, direction = _ray(origin, direction)
     t_max = _ray_extent(grid, origin, direction, trace) if t_max is None else t_max
@@ -109,7 +111,7 @@ def _plot_rho_angle(grid, origin, direction, t_max, trace, ax, axis):
             hit_angle = np.arctan2(hits[:, 0] + 0.0, hits[:, 2] + 0.0)
             hit_angle = grid.theta_edges[0] + np.mod(hit_angle - grid.theta_edges[0], 2 * np.pi)
         ax.plot(hit_rho, np.degrees(hit_angle), "r.", label="cell entries")
-    ax.set_xlabel("rho")
+    ax.set_xlabel(f"rho ({unit})")
     ax.set_ylabel(f"{axis} (deg)")
     ax.set_xlim(0.0, grid.rho_max * 1.05)
     low, high = np.degrees(angle.min()), np.degrees(angle.max())
@@ -165,21 +167,25 @@ def plot_cells(grid, cells, ax=None, color="tab:red", alpha=0.25):
     return ax
 
 
-def trace_figure(grid, origin, direction, trace, title=None):
-    """Draw the four panels of the paper's Fig. 3 for one traced ray; return the Figure."""
+def trace_figure(grid, origin, direction, trace, title=None, unit="m"):
+    """Draw the four panels of the paper's Fig. 3 for one traced ray; return the Figure.
+
+    ``unit`` is the grid's length unit, for the axis labels (the paper's
+    worked example is in decimetres).
+    """
     plt = _pyplot()
     fig = plt.figure(figsize=(12, 10))
     ax_a = fig.add_subplot(2, 2, 1, projection="3d")
-    plot_scene(grid, origin, direction, trace=trace, ax=ax_a)
+    plot_scene(grid, origin, direction, trace=trace, ax=ax_a, unit=unit)
     ax_a.set_title("(a) scene: robot, person, gaze ray")
     ax_b = fig.add_subplot(2, 2, 2)
-    plot_rho_phi(grid, origin, direction, trace=trace, ax=ax_b)
+    plot_rho_phi(grid, origin, direction, trace=trace, ax=ax_b, unit=unit)
     ax_b.set_title("(b) the ray in the rho-phi plane")
     ax_c = fig.add_subplot(2, 2, 3, projection="3d")
     plot_index_boxes(trace, ax=ax_c)
     ax_c.set_title("(c) traversed cells by index (i, j, k)")
     ax_d = fig.add_subplot(2, 2, 4, projection="3d")
-    plot_scene(grid, origin, direction, trace=trace, ax=ax_d)
+    plot_scene(grid, origin, direction, trace=trace, ax=ax_d, unit=unit)
     plot_cells(grid, trace.unique(), ax=ax_d)
     ax_d.set_title("(d) the cells as volumes over the scene")
     if title:

@@ -37,7 +37,7 @@ def test_rho_theta_panel():
 
     grid = lt.Grid(0.3, 10.0, 4, 8, 4)
     ax = plot_rho_theta(grid, [1.0, 0.5, -2.0], [0.3, 0.0, 1.0])
-    assert ax.get_xlabel() == "rho" and "theta" in ax.get_ylabel()
+    assert ax.get_xlabel() == "rho (m)" and "theta" in ax.get_ylabel()
     matplotlib.pyplot.close(ax.figure)
 
 
