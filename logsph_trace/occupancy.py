@@ -207,17 +207,22 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, w
     return int(started), int(ended), int(straight)
 
 
-def _warn_nothing_inside(grid, origin, points, max_range):
-    """Warn that no point of a scan landed in a cell: likely a mistake of units or frames."""
-    distances = np.linalg.norm(points - origin, axis=1)
+def _warn_nothing_inside(grid, points):
+    """Warn when no point of a scan landed in a cell and most lie beyond the grid's radii.
+
+    That is a mistake of units (millimetres as metres) or of frames; a scan
+    whose points lie within the radii but outside a partial grid's angles,
+    or beyond ``max_range``, is not.
+    """
     reach = np.linalg.norm(points, axis=1)
+    median = float(np.median(reach))
+    if grid.rho_min <= median <= grid.rho_max:
+        return
     validate.warn(
-        f"none of the scan's {points.shape[0]:,} points lies in the map (rho "
-        f"{grid.rho_min:g} to {grid.rho_max:g} from its centre"
-        + ("" if math.isinf(max_range) else f", within max_range={max_range:g} of the sensor")
-        + f"); they lie {np.median(reach):.3g} from the centre (median) and "
-        f"{np.median(distances):.3g} from the sensor: are the points and the grid in one unit "
-        f"(depth_scale) and one frame (pose)?", validate.DepthUnitWarning)
+        f"none of the scan's {points.shape[0]:,} points lies in the map: they lie "
+        f"{median:.3g} from its centre (median), and the map reaches from {grid.rho_min:g} to "
+        f"{grid.rho_max:g}. Are the points and the grid in one unit (depth_scale) and one "
+        f"frame (pose)?", validate.DepthUnitWarning)
 
 
 def _one_at_a_time(method):
@@ -501,7 +506,7 @@ class OccupancyGrid:
                                     view, *update, threads)
                 lap("apply", start)
         if points.shape[0] and isinstance(hits, np.ndarray) and hits.max() < 0:
-            _warn_nothing_inside(grid, origin, points, max_range)
+            _warn_nothing_inside(grid, points)
         if labels is not None:
             if not at_centre:  # the walk's hits are column-major (see apply_scan)
                 hit = hits >= 0

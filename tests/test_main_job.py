@@ -132,11 +132,14 @@ def test_a_scan_that_lands_outside_the_map_warns():
     far = np.random.default_rng(3).normal(size=(50, 3)) * 100 + [0, 0, 500]
     with pytest.warns(lt.DepthUnitWarning, match="none of the scan's 50 points lies in the map"):
         occupancy.integrate(far, (0.0, 0.0, 0.0))
-    with pytest.warns(lt.UnitWarning, match="within max_range=1"):
-        occupancy.integrate([[0.0, 0.0, 5.0]], (0.1, 0.0, 0.0), max_range=1.0)
+    with pytest.warns(lt.UnitWarning, match="reaches from 0.3 to 8"):
+        occupancy.integrate([[0.0, 0.0, 0.1], [0.05, 0.0, 0.1]], (0.0, 0.0, 0.0))  # in the gap
+    wedge = lt.OccupancyGrid(lt.Grid(0.3, 8.0, 16, 36, 18, theta_range=(0.0, 1.0)))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        occupancy.integrate(np.vstack([far, [[0.0, 0.0, 5.0]]]), (0.0, 0.0, 0.0))
+        occupancy.integrate(np.vstack([far, [[0.0, 0.0, 5.0]]]), (0.0, 0.0, 0.0))  # one lands
+        occupancy.integrate([[0.0, 0.0, 5.0]], (0.1, 0.0, 0.0), max_range=1.0)  # beyond range
+        wedge.integrate([[-2.0, 0.0, 2.0]], (0.0, 0.0, 0.0))  # outside the wedge's angles
 
 
 @pytest.mark.parametrize("pitch, yaw", [(30.0, 200.0), (-52.0, 5.0), (0.0, 7.0), (2.0, 0.0)])

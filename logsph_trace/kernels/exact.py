@@ -138,7 +138,7 @@ def _clamp(t_candidate, t_run, t_high):
     ``minsd`` (a NaN candidate keeps ``t_run`` either way). With ``>=`` and
     ``<=`` an equal candidate would be kept instead, which differs only for
     0.0 against -0.0, but LLVM must honour it: it compiled a compare and a
-    masked move, a longer chain (``bench/results/issue12_loop.md``).
+    masked move, a longer chain.
     """
     t_run = t_candidate if t_candidate > t_run else t_run  # also NaN -> now
     return t_run, (t_run if t_run < t_high else t_high)
@@ -160,8 +160,7 @@ def _at_infinity(t_candidate, t_low, slack):
     restarted at the gap's exit): ``_clamp`` makes it happen now.
     Crossings are counted in order, so only the last of a branch can be at
     infinity, and the loops test it once, after the branch: tested on every
-    crossing, it had cost the trace a few per cent
-    (``bench/results/issue12_loop.md``).
+    crossing, it costs the trace a few per cent (``python -m bench.ab``).
     """
     return t_candidate < t_low - 1e9 * slack  # slack is 1e-9 of the scene
 
@@ -475,7 +474,7 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
       (``PARALLEL``), the crossing is then at infinity (``inf``); otherwise
       the later root is behind the start by rounding only, and the crossing
       is now (``earliest``).
-    Both roots behind the start had been dropped, and the ray kept the eye's
+    Dropping both roots behind the start would keep the ray in the eye's
     zone for good.
 
     The cone of phi = 0 (``nappe`` 0) is the plane y = 0. A discriminant
@@ -483,7 +482,7 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
     except when the direction lies on the cone
     (``a`` ~ 0, its sign rounding): then with the closest point at the
     centre's height (``half_b`` ~ 0 too) the line only approaches the cone,
-    at infinity, and the double root had put a crossing at the closest point.
+    at infinity, where the double root would put a crossing at the closest point.
     On the nappe the direction points into, that is ahead (``inf``); on the
     other, behind the ray, whose start the plan saw across it only by
     rounding: the crossing is then now (``earliest``).
@@ -560,7 +559,7 @@ def _flat_cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cx,
     half of the cone the roots lie on, tested by the height ``c_y + u d_y``,
     a difference of two terms of size c_y. An edge of 1e-9 rad lost the
     crossing of 8 rays in 300 that rose through it, and with it every
-    crossing after (``bench/results/issue12_other_rays.md``). Here both are
+    crossing after. Here both are
     written without the cancellation: the discriminant is
     tan^2 |d_y C - c_y B|^2 - tan^4 (C x B)^2 (C = (c_x, c_z), B = (d_x, d_z)),
     and the heights (tan^2 (C.B d_y - c_y |B|^2) - s d_y sqrt(disc)) / a and
@@ -661,8 +660,8 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
 
     ``grid``: the grid's ``GridArrays``. Where its cone arrays are padded
     (the CPU's), every block of cones computes all ``CONE_BLOCK`` lanes: one
-    vector pass, without the scalar loop LLVM adds for a partial block
-    (measured in ``bench/results/issue12_loop.md``). The number comes from
+    vector pass, without the scalar loop LLVM adds for a partial block.
+    The number comes from
     the arrays, not the constant: a loop of a fixed 8 LLVM unrolls into
     scalar code. Unpadded (the GPU's), a block times only the cones it needs.
     """
