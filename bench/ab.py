@@ -21,8 +21,8 @@ workload, traces it once untimed, then times ``--repeats`` serial
 in a temporary git worktree, removed afterwards; its Numba cache is its own.
 
 Unlike a probe that imports two copies of the package into one process
-(``bench/results/issue12_loop.md``: such a probe favoured the tree it ran
-from by 1-2% on identical code), the two trees never share a process. Run
+(such a probe favours the tree it runs from by 1-2% on identical code),
+the two trees never share a process. Run
 it with REV = HEAD on a clean tree to see what "no change" reads as.
 Prints the per-round ratios and the ratio of the medians (below 1: this
 tree is faster); nothing is written. Needs git.

@@ -13,17 +13,13 @@ and accuracy.md.
 """
 
 import argparse
-import json
-import sys
-import time
 from pathlib import Path
 
 import numba
 import numpy as np
 
 import logsph_trace as lt
-from bench.workload import best_time, make_grid, make_rays
-from logsph_trace._files import write_text
+from bench.workload import best_time, make_grid, make_rays, write_results
 
 RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_TS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 1.5531, 2.0, 5.0)
@@ -129,15 +125,10 @@ def main(argv=None):
                   f"{best['exact_speedup_per_voxel']:.1f}x faster and misses nothing, where bisect "
                   f"misses cells on {100 * best['rays_missing_cells']:.1f}% of rays."]
     text = "\n".join(lines)
-    print(text)
-    command = "python -m bench.accuracy " + " ".join(argv if argv is not None else sys.argv[1:])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    write_text(args.out, json.dumps({
-        "command": command.strip(), "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+    write_results("accuracy", argv, text, {
         "rays": args.rays, "cells_per_axis": args.cells, "voxels_crossed": int(crossed),
         "exact_ns_per_voxel": exact_ns, "bisect": rows,
-    }, indent=2) + "\n")
-    write_text(args.out.with_suffix(".md"), f"`{command.strip()}`\n\n{text}\n")
+    }, out=args.out)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Gaze-cone timing (issue 4): a 1,000-ray cone on a 64 x 360 x 180 grid, rho 0.3-10 m.
+"""Gaze-cone timing: a 1,000-ray cone on a 64 x 360 x 180 grid, rho 0.3-10 m.
 
     python -m bench.cone [--threads 1,2,4,...] [--repeats 50]
 
@@ -6,8 +6,8 @@ A person 1.5 m from the robot looks down at a table; the cone is traced and
 aggregated into weighted cells, per thread count, with the phases of the
 best call (bound: the rays' segment bounds and the scratch; trace; aggregate).
 In the same rounds: ``fixation_probability`` on the same gaze over the table
-scene's map (issue 12 asks for at most 1.2x the cone), and the packed-trace
-baseline. Writes bench/results/cone.json and cone.md.
+scene's map (its cost over the cone's alone is the figure to watch), and
+the packed-trace baseline. Writes bench/results/cone.json and cone.md.
 """
 
 import numba
@@ -22,8 +22,8 @@ GAZE = (-0.1, -0.4, 1.0)
 
 
 def _packed(grid, origin, gaze, half_angle, n_rays):
-    """The cone as issue 4 first built it, kept as this benchmark's in-run
-    baseline: trace into fresh packed arrays, then aggregate."""
+    """The plain cone, this benchmark's in-run baseline: trace into fresh
+    packed arrays, then aggregate."""
     from logsph_trace.cone import aggregate_cells, sample_rays, trace_given_rays
 
     origin = np.asarray(origin, dtype=np.float64)

@@ -1,4 +1,4 @@
-"""Depth-image integration (issue 14): the real Motorcycle frame into a 64 x 360 x 180 map.
+"""Depth-image integration: the real Motorcycle frame into a 64 x 360 x 180 map.
 
     python -m bench.depth [--threads 1,2,...] [--repeats 20]
 

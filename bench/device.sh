@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Issue 12's many-core measurements (and the CUDA checks) in one call on a
-# lent machine with 16 cores and a GPU, whose Python has numba, scikit-image
+# The many-core measurements (and the CUDA checks) in one call on a
+# machine with 16 cores and a GPU, whose Python has numba, scikit-image
 # and numba-cuda but reaches no package registry.
 #
 #   bash bench/device.sh fetch   # here, with pip: the wheels it needs, into .whl/ (ignored)
@@ -10,7 +10,7 @@
 #
 # What it carries: numpy 2.4 (numba-cuda 0.30.4 does not import with numpy
 # 2.5) and TBB, the threading layer the package prefers (without it Numba
-# falls back to OpenMP there, as in bench/results/issue12_16core.md). pip
+# falls back to OpenMP there, which scales worse). pip
 # --target leaves a wheel's shared libraries out, so TBB's are unpacked
 # beside the packages and put on the loader's path.
 #

@@ -1,4 +1,4 @@
-"""First touch in a parallel trace_many: what fresh output costs per thread count (issue 12).
+"""First touch in a parallel trace_many: what fresh output costs per thread count.
 
     python -m bench.faults                                   # 100,000 rays, 128^3 cells
     python -m bench.faults --rays 1000000 --threads 1,2,4,8,16
@@ -24,7 +24,7 @@ apart, alternated in one run, best of ``--repeats`` per thread count:
 
 Before timing, twice the output's size of memory is written once and freed
 (``--prime MB`` sets it, 0 skips it; ``bench.workload.prime_memory``): on a
-fresh VM the first touch of memory is the host's fault too, which is not
+fresh virtual machine the first touch of memory is the host's fault too, which is not
 what this measures. Writes ``bench/results/faults.json`` and ``.md``.
 """
 

@@ -15,8 +15,6 @@ largest size with exact's speed-up over each method, all from one run.
 """
 
 import argparse
-import json
-import sys
 import time
 from pathlib import Path
 
@@ -24,8 +22,8 @@ import numba
 import numpy as np
 
 import logsph_trace as lt
-from bench.workload import make_box, make_grid, make_rays
-from logsph_trace._files import save_figure, write_text
+from bench.workload import make_box, make_grid, make_rays, write_results
+from logsph_trace._files import save_figure
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHODS = ("exact", "bisect", "thibaudeau", "amanatides_woo")
@@ -130,15 +128,9 @@ def main(argv=None):
 
     points = measure(args.sizes, args.rays, args.repetitions)
     text = table(points)
-    print(text)
-    arguments = argv if argv is not None else sys.argv[1:]
-    command = ("python -m bench.fig4 " + " ".join(arguments)).strip()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    write_text(args.out, json.dumps({
-        "command": command, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+    write_results("fig4", argv, text, {
         "rays": args.rays, "repetitions": args.repetitions, "points": points,
-    }, indent=2) + "\n")
-    write_text(args.out.with_suffix(".md"), f"`{command}`\n\n{text}\n")
+    }, out=args.out)
     plot(points, args.out.with_suffix(".png"))
     print(f"wrote {args.out}, {args.out.with_suffix('.png')}")
 

@@ -72,7 +72,8 @@ def figure(grid, result, path):
     ax.set_title("(a) the robot's depth camera")
     ax.set_axis_off()
     panels = [
-        ("(b) occupancy (red) and the gaze ray (yellow)", result["occupancy"].occupied(0.6),
+        ("(b) occupied cells nearer than 3 m (red) and the gaze (yellow)",
+         result["occupancy"].occupied(0.6),
          "tab:red"),
         ("(c) cells the gaze traverses (yellow)", result["ray"].unique(), "gold"),
         ("(d) gaze targets: traversed and occupied (green)", result["targets"].cells, "tab:green"),
@@ -80,11 +81,8 @@ def figure(grid, result, path):
     for number, (title, cells, color) in enumerate(panels, start=2):
         ax = fig.add_subplot(2, 2, number, projection="3d")
         ax.scatter(points[:, 0], points[:, 2], points[:, 1], s=0.5, color="tab:blue", alpha=0.3)
-        if len(cells):  # only the cells inside the box drawn: 3-D axes clip nothing
-            centres = grid.cell_centers(cells)
-            inside = ((np.abs(centres[:, 0]) < 1.4) & (centres[:, 2] < 3.5)
-                      & (np.abs(centres[:, 1]) < 0.9))
-            cells = cells[inside]
+        if len(cells):  # the wall behind would hide the rest, and 3-D axes clip nothing
+            cells = cells[np.linalg.norm(grid.cell_centers(cells), axis=1) < 3.0]
         plot_cells(grid, cells, ax=ax, color=color, alpha=0.35)
         ax.plot(line[:, 0], line[:, 2], line[:, 1], color="gold", linewidth=2)
         ax.scatter([eyes[0]], [eyes[2]], [eyes[1]], marker="*", color="gold", edgecolor="k",

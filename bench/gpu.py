@@ -1,4 +1,4 @@
-"""GPU timings (issue 13), with the device named and the baselines in the same run.
+"""GPU timings, with the device named and the baselines in the same run.
 
     python -m bench.gpu [--rays 1000000] [--cells 128] [--repeats 10]
     NUMBA_ENABLE_CUDASIM=1 NUMBA_DISABLE_JIT=1 python -m bench.gpu --smoke

@@ -1,4 +1,4 @@
-"""Occupancy integration kernel by kernel (issue 12): where a scan's time goes per thread count.
+"""Occupancy integration kernel by kernel: where a scan's time goes per thread count.
 
     python -m bench.integrate_kernels [--threads 1,2,4,...] [--repeats 10]
 

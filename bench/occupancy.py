@@ -1,4 +1,4 @@
-"""Occupancy integration timing (issues 4 and 12): depth scans into a 64 x 360 x 180 map.
+"""Occupancy integration timing: depth scans into a 64 x 360 x 180 map.
 
     python -m bench.occupancy [--threads 1,2,4,...] [--repeats 10]
 
@@ -15,7 +15,7 @@ the same scan with every ray walked whole (the coherent scan switched off,
 as before it existed), and ``trace_many`` of the same rays up to their end
 points, on all threads. Before each scan is timed, twice the size of that
 baseline's output is written once (``bench.workload.prime_memory``: a fresh
-VM's first touch of memory would slow the baseline). Writes
+virtual machine's first touch of memory would slow the baseline). Writes
 bench/results/occupancy.json and occupancy.md.
 """
 
@@ -75,7 +75,7 @@ def main(argv=None):
         occupancy.integrate(points, sensor)  # compiles or loads the kernels
         segments = lt.trace_many(grid, origins, offsets, t_max=distances).cells.shape[0]
         # The trace_many baseline writes fresh output: twice its size, written once
-        # first, keeps a fresh VM's first touch out of it (prime_memory).
+        # first, keeps a fresh virtual machine's first touch out of it (prime_memory).
         scan_primed = prime_memory(2 * segments * SEGMENT_BYTES / 2**20)
         if primed is None or scan_primed[0] > primed[0]:
             primed = scan_primed

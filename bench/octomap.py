@@ -1,4 +1,4 @@
-"""Our map against OctoMap (issue 14): the same real cloud into both, in one run.
+"""Our map against OctoMap: the same real cloud into both, in one run.
 
     python -m bench.octomap [--repeats 5] [--sample 5000]
 

@@ -1,4 +1,4 @@
-"""Peak memory and time of a parallel trace_many against its output (issues 11 and 12).
+"""Peak memory and time of a parallel trace_many against its output.
 
 Run from a checkout: ``python bench/parallel_memory.py [N_RAYS]`` (default 300,000 random
 rays on the 128^3 grid of bench.run). For the serial pass, the public parallel call (two

@@ -1,6 +1,6 @@
 """Traversal benchmark: exact log-spherical kernel vs Amanatides-Woo, in one run.
 
-    python -m bench.run                 # 128^3 cells, 100,000 rays (issue 2)
+    python -m bench.run                 # 128^3 cells, 100,000 rays
     python -m bench.run --rays 20000 --cells 64 --repeats 3
     python -m bench.run --threads 1,2,4,8,16
 
@@ -12,16 +12,11 @@ kernels batch the same way: one appending pass on one thread, two halves
 meeting in the middle on two, ordered chunks on more; per thread count the
 table gives the time in each phase. Four times the exact output's size of
 memory is written once before timing (``--prime MB``; 0 skips it): on a fresh
-VM a process's first touch of memory costs the host a fault as well
+virtual machine a process's first touch of memory costs the host a fault as well
 (``bench.workload.prime_memory``).
 """
 
 import argparse
-import json
-import os
-import platform
-import sys
-import time
 from pathlib import Path
 
 import numba
@@ -38,9 +33,9 @@ from bench.workload import (
     prime_note,
     thread_counts,
     timed,
+    write_results,
 )
 from logsph_trace import _batching, _validate
-from logsph_trace._files import write_text
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -217,23 +212,8 @@ def main(argv=None):
     result = measure(args.rays, args.cells, args.repeats, counts, args.prime)
     first_call = None if args.no_first_call else first_call_times()
     text = table(result, first_call)
-    print(text)
-    record = {
-        "command": "python -m bench.run " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "machine": {
-            "cpu": platform.processor() or platform.machine(),
-            "cores": os.cpu_count(),
-            "python": platform.python_version(),
-            "numpy": np.__version__,
-            "numba": numba.__version__,
-        },
-        "result": result,
-        "first_call": first_call,
-    }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    write_text(args.out, json.dumps(record, indent=2) + "\n")
-    write_text(args.out.with_suffix(".md"), f"`{record['command'].strip()}`\n\n{text}\n")
+    write_results("run", argv, text, {"result": result, "first_call": first_call},
+                  out=args.out)
 
 
 if __name__ == "__main__":

@@ -40,10 +40,9 @@ def prime_memory(megabytes):
     """Write once to every page of ``megabytes`` of fresh memory, then free it.
 
     A virtual machine's first write to memory its guest has never used costs
-    the host a fault of its own: on this project's 2-core VM (Firecracker),
-    200 MB took 0.21 s to fault in the first time and 0.03 s each time after
-    (``bench/results/issue12_vm_memory.md``). A fresh process timed
-    there measures that, not the library, and worst on many threads, whose
+    the host a fault of its own: on a 2-core cloud virtual machine, 200 MB
+    took 0.21 s to fault in the first time and 0.03 s each time after. A
+    fresh process timed there measures that, not the library, and worst on many threads, whose
     faults the host takes one at a time. The benchmarks that time calls into
     fresh output first write to about twice what they will allocate at
     once; freed, the pages go back to the guest's free lists, where the
@@ -64,10 +63,11 @@ def prime_memory(megabytes):
 def prime_note(primed):
     """The table line that says how much memory was primed (``prime_memory``), and in what time."""
     if primed is None:
-        return "memory not primed (--prime 0): a fresh VM's first touch is in the figures"
+        return ("memory not primed (--prime 0): a fresh virtual machine's first touch is in "
+                "the figures")
     megabytes, seconds = primed
     return (f"memory primed: {megabytes:,.0f} MB written once before timing, in {seconds:.2f} s "
-            "(a fresh VM's first write to its memory costs far more than a later one)")
+            "(a virtual machine's first write to fresh memory costs far more than a later one)")
 
 
 def add_prime_option(parser, default):
@@ -159,20 +159,53 @@ def fresh_processes(code):
             text=True).stdout.split()] for _ in range(2)]
 
 
-def write_results(name, argv, text, record):
-    """Print ``text`` and write bench/results/<name>.json (``record`` plus the
-    command and date) and <name>.md (the command, then ``text``), each atomically."""
+def environment():
+    """The machine and versions a record was measured with (a dict), and one line for its page."""
+    import os
+    import platform
+
+    import numba
+
+    import logsph_trace
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as stream:
+            models = [line.split(":", 1)[1].strip() for line in stream
+                      if line.startswith("model name")]
+        cpu = models[0] if models else cpu
+    except OSError:
+        pass
+    found = {"cpu": cpu, "cores": os.cpu_count(), "system": platform.system(),
+             "python": platform.python_version(), "numpy": np.__version__,
+             "numba": numba.__version__, "logsph_trace": logsph_trace.__version__}
+    line = (f"Machine: {found['cpu']}, {found['cores']} cores, {found['system']}; Python "
+            f"{found['python']}, numpy {found['numpy']}, numba {found['numba']}.")
+    return found, line
+
+
+def write_results(name, argv, text, record, out=None):
+    """Print ``text`` and write the benchmark's record, each file atomically.
+
+    ``<name>.json`` holds ``record`` with the command, the date, the machine
+    and the versions; ``<name>.md`` the command, the machine line, then
+    ``text``. ``out``: the JSON file's path (default bench/results/<name>.json);
+    the page goes beside it. Both are overwritten on every run.
+    """
     import json
     import sys
     from pathlib import Path
 
     from logsph_trace._files import write_text
 
-    results = Path(__file__).resolve().parent / "results"
+    out = Path(out) if out is not None else (
+        Path(__file__).resolve().parent / "results" / f"{name}.json")
     arguments = argv if argv is not None else sys.argv[1:]
     command = (f"python -m bench.{name} " + " ".join(arguments)).strip()
+    machine, line = environment()
     print(text)
-    results.mkdir(parents=True, exist_ok=True)
-    stamped = {"command": command, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), **record}
-    write_text(results / f"{name}.json", json.dumps(stamped, indent=2) + "\n")
-    write_text(results / f"{name}.md", f"`{command}`\n\n{text}\n")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stamped = {"command": command, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+               "machine": machine, **record}
+    write_text(out, json.dumps(stamped, indent=2) + "\n")
+    write_text(out.with_suffix(".md"), f"`{command}`\n\n{line}\n\n{text}\n")

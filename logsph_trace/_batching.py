@@ -290,12 +290,9 @@ RESERVE_MARGIN = 1.25
 # thread takes the page faults of fresh output as it writes, so their shares
 # of the bounds' sum are tuned, by the arrays: fresh or held (reused, faulted
 # in already). trace_many on bench.run's 100,000 rays, 2 threads, best of 12
-# calls, alternated in one run (2026-11-24, after the zone lookups got
-# faster): fresh arrays 0.47 62.4-62.6 ms, 0.485 59.8-60.6, 0.50 61.1-61.4,
-# 0.515 62.4-62.6; held buffers 0.47 54.7-55.1, 0.485 55.8-56.6, 0.50 57.0.
-# (Before the lookups got faster, 0.465-0.475 was best for both.)
-# Amanatides-Woo, memory-bound on two threads there, ran the same from 0.42
-# to 0.48 before the stores were non-temporal.
+# calls, alternated in one run on a 2-core AMD EPYC: fresh arrays 0.47
+# 62.4-62.6 ms, 0.485 59.8-60.6, 0.50 61.1-61.4, 0.515 62.4-62.6; held
+# buffers 0.47 54.7-55.1, 0.485 55.8-56.6, 0.50 57.0.
 HALVES_FRONT_SHARE = 0.485
 HALVES_FRONT_SHARE_HELD = 0.47
 # Rays sampled for their bounds, plus one in 512; at most one in 16 (a ray's

@@ -63,7 +63,7 @@ def random_rays(rng, grid, n_rays):
 def pytest_addoption(parser):
     parser.addoption("--fuzz-rays", type=int, default=200_000,
                      help="rays of tests/test_fuzz.py over all grid kinds together "
-                          "(the default is issue 11's 200,000; more for a longer fuzz)")
+                          "(default 200,000; more for a longer fuzz)")
 
 
 @pytest.fixture(scope="session")

@@ -1,4 +1,4 @@
-"""Hand-made rays for every special case of issue 2, item 3.
+"""Hand-made rays for every special case of the geometry contract.
 
 Each is checked against the oracle *and* against what the geometry says must
 happen (a gap, a seam crossing, a fixed index...), so a wrong oracle cannot

@@ -1,4 +1,4 @@
-"""Misuse that used to crash, lose data or mislead (issue 11), each as a regression test."""
+"""Misuse that could crash, lose data or mislead, each as a regression test."""
 
 import os
 

@@ -7,7 +7,7 @@ trace into a small scratch and copy it there afterwards: the front half of
 cache first reads the line it writes into (a read for ownership), so such a
 copy moves each target byte between memory and the cache twice. A
 non-temporal store writes the line without reading it, and leaves the cache
-to the tracing. On the benchmark machine (2-core AMD EPYC VM) copying 6M
+to the tracing. On a 2-core AMD EPYC, copying 6M
 segments (168 MB) from a 32K-segment scratch into memory took 16.0 ms as a
 loop of plain stores, 13.3 ms as three ``memcpy`` and 7.5 ms with these
 stores.
