@@ -30,8 +30,8 @@ def _packed(grid, origin, gaze, half_angle, n_rays):
     directions, ray_weights = sample_rays(grid, origin, gaze, half_angle, n_rays, "fibonacci",
                                       "gaussian", None)
     traces = trace_given_rays(grid, origin, directions)
-    return aggregate_cells(grid, traces.offsets, traces.cells, traces.t_enter, directions[0],
-                      ray_weights)
+    return aggregate_cells(grid, traces.offsets, traces.cells, traces.t_enter, origin,
+                           directions[0], ray_weights)
 
 
 def fixation_map(grid):
