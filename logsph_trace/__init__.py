@@ -24,6 +24,7 @@ from .occupancy import GazeTargets, OccupancyGrid, ScanStats, fixation_probabili
 from .sensor import DepthPoints, Gaze, depth_to_points, gaze_from_pitch_yaw, gaze_from_vector
 from .trace import METHODS, trace, trace_many
 from .traces import Trace, TraceBuffers, Traces
+from .warmup import warmup
 
 __all__ = [
     "AngleUnitWarning",
@@ -60,6 +61,7 @@ __all__ = [
     "trace_cone",
     "trace_cones",
     "trace_many",
+    "warmup",
 ]
 try:  # one version, written once: pyproject.toml's
     __version__ = _metadata.version("logsph_trace")

@@ -4,6 +4,7 @@
     logsph-trace look DEPTH --intrinsics FX FY CX CY [--depth-scale S] [--labels FILE]
                       [--names FILE] --eyes X Y Z (--pitch-yaw P Y | --gaze DX DY DZ)
                       [--half-angle DEG] [--json] [--html FILE]
+    logsph-trace warmup
     logsph-trace trace --grid 0.3,10,64,360,180 --origin 0 2 2 --direction -0.3 -0.01 0
                        [--cone 5] [--format table|json|csv]
     logsph-trace trace --rays rays.npy --out traces.npz
@@ -404,6 +405,18 @@ def cmd_look(args):
     return 0
 
 
+def cmd_warmup(args):
+    """``logsph-trace warmup``: compile and cache every CPU kernel now."""
+    from ._jit import CACHE
+    from .warmup import warmup
+
+    seconds = warmup()
+    where = ("cached for later processes" if CACHE
+             else "not cached (LOGSPH_TRACE_CACHE=0): later processes compile again")
+    print(f"logsph_trace: every CPU kernel ready in {seconds:.1f} s, {where}")
+    return 0
+
+
 def cmd_bench(args):
     """Run the Fig. 4 timing study: ``bench/fig4.py`` of the source checkout.
 
@@ -497,6 +510,12 @@ def build_parser():
                        help="no progress bar (there is none unless stderr is a terminal)")
     _add_grid_options(trace)
     trace.set_defaults(run=cmd_trace)
+    warm = commands.add_parser(
+        "warmup", help="compile and cache every kernel now, not on the first call",
+        description="Compile every CPU kernel once and cache it beside the package, so that "
+                    "the first real call is fast (for robots and container images; run it on "
+                    "the machine and as the user that will use it).")
+    warm.set_defaults(run=cmd_warmup)
     bench = commands.add_parser("bench", help="the timing study (Fig. 4)")
     bench.add_argument("--quick", action="store_true", help="small sizes, 20 repetitions")
     bench.add_argument("--out", default=str(OUT_DIR), help="folder for fig4.json/.md/.png")

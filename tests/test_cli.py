@@ -235,6 +235,12 @@ def test_look_needs_a_depth_file_it_can_read(tmp_path):
     assert no_gaze.returncode == 2 and "one of the arguments --pitch-yaw --gaze" in no_gaze.stderr
 
 
+def test_warmup_compiles_and_says_so():
+    result = run("warmup")
+    assert result.returncode == 0, result.stderr
+    assert re.match(r"logsph_trace: every CPU kernel ready in \d+\.\d s, cached", result.stdout)
+
+
 def test_out_with_one_ray_is_an_error(tmp_path):
     result = run("trace", "--origin", "0", "20", "20", "--direction", "-0.3", "-0.01", "0",
                  "--out", str(tmp_path / "t.npz"))

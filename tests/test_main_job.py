@@ -221,3 +221,28 @@ def test_the_view_is_one_self_contained_file(bvm, frame, tmp_path):
     with pytest.raises(TypeError, match="gaze must be a Gaze"):
         write_view(tmp_path / "x.html", bvm, gaze=(demo.EYES, (0, 0, 1)))
     assert not (tmp_path / "x.html").exists()
+
+
+def test_after_warmup_the_main_job_compiles_nothing(frame):
+    from numba.core import event
+
+    lt.warmup()
+    compiled = []
+
+    class Listener(event.Listener):
+        def on_start(self, ev):
+            compiled.append(getattr(ev.data.get("dispatcher"), "py_func", None))
+
+        def on_end(self, ev):
+            pass
+
+    listener = Listener()
+    event.register("numba:compile", listener)
+    try:
+        bvm = lt.OccupancyGrid(GRID).integrate_depth(frame.depth, frame.intrinsics,
+                                                     labels=frame.labels)
+        gaze = lt.gaze_from_pitch_yaw(np.radians(-52), np.radians(5), demo.EYES)
+        assert lt.gaze_objects(bvm, gaze, names=frame.names).top.name == "motorcycle"
+    finally:
+        event.unregister("numba:compile", listener)
+    assert not compiled, [getattr(f, "__qualname__", f) for f in compiled]
