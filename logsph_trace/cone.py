@@ -7,6 +7,7 @@ which the cone first reaches it.
 """
 
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -308,6 +309,16 @@ def aggregate_cells(grid, offsets, cells, t_enter, origin, axis, weights, chunks
         starts, firsts = chunks[0], chunks[1][:-1]
     firsts = np.ascontiguousarray(firsts)
     j_shift = theta_shift(grid, origin, axis)
+    if _towards_the_centre(origin, axis):
+        if fixation is None:
+            t_exit, log_odds, min_distance, unknown, free_below = t_enter, _NO_MAP, 0.0, 0.0, 0.0
+        else:
+            t_exit, log_odds, min_distance, unknown, free_below = fixation
+        cells, weights, t_first = _cone.sparse_cone(
+            offsets, starts, firsts, cells, t_enter, t_exit, weights, log_odds, grid.n_theta,
+            grid.n_phi, j_shift, fixation is not None, min_distance, unknown, free_below,
+            _slots(grid))
+        return by_first_reach(cells, weights, t_first, normalise=fixation is None)
     pool, ray_pool = batching.box_pools()
     if fixation is None:
         cells, weights, t_first, needed = _cone.aggregate_boxes(
@@ -320,6 +331,34 @@ def aggregate_cells(grid, offsets, cells, t_enter, origin, axis, weights, chunks
             grid.n_phi, min_distance, unknown, free_below, j_shift, pool, ray_pool)
     batching.keep_box_pools(int(needed))
     return by_first_reach(cells, weights, t_first, normalise=fixation is None)
+
+
+_NO_MAP = np.zeros(1, dtype=np.float32)
+_slot_scratch = threading.local()
+
+
+def _towards_the_centre(origin, axis):
+    """Whether a cone's axis heads back past its apex's side of the map's centre.
+
+    Such a cone (eyes that face the robot) crosses the shells near its apex
+    twice, far apart in azimuth and elevation, and its per-shell boxes are
+    mostly empty: ``kernels.cone.sparse_cone`` sums it without boxes, to the
+    same results bit for bit. ``python -m bench.ab REV --workload gaze``
+    (this kind of gaze) and ``--workload cone`` (a gaze away from the robot,
+    which keeps the boxes) measure the two.
+    """
+    origin = np.asarray(origin, dtype=np.float64)
+    return float(origin @ np.asarray(axis, dtype=np.float64)) < 0.0
+
+
+def _slots(grid):
+    """Return this thread's slot per map cell for ``sparse_cone`` (int32, never cleared)."""
+    size = grid.n_rho * grid.n_theta * grid.n_phi
+    held = getattr(_slot_scratch, "slots", None)
+    if held is None or held.shape[0] < size:
+        validate.fits("grid", 4 * size, f"a gaze cone's scratch of {size:,} cells")
+        held = _slot_scratch.slots = np.empty(size, dtype=np.int32)
+    return held
 
 
 def theta_shift(grid, origin, axis):

@@ -300,3 +300,39 @@ def test_bad_cone_input(kwargs, match):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         trace_cone(**args)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_cones_summed_without_boxes_equal_the_boxes_bit_for_bit(monkeypatch, seed):
+    # Eyes facing the robot are summed without boxes (sparse_cone); any cone
+    # may be, and must give the boxes' cells, order, sums and first reaches.
+    from logsph_trace import cone as cone_module
+    from logsph_trace.scene import table_scene
+
+    rng = np.random.default_rng(seed)
+    grid = lt.Grid(0.3, 6.0, 24, 72, 36)
+    scene, _, _ = table_scene()
+    bvm = lt.OccupancyGrid(grid).integrate(scene.depth_points(width=160, height=120)[0],
+                                           (0.0, 0.0, 0.0))
+    for _ in range(6):
+        origin = rng.normal(size=3) * rng.choice([0.2, 1.5, 3.0])
+        axis = rng.normal(size=3)
+        half_angle = np.radians(rng.uniform(1.0, 20.0))
+        n_rays = int(rng.choice([40, 300, 1200]))
+        results = []
+        for sparse in (False, True):
+            monkeypatch.setattr(cone_module, "_towards_the_centre", lambda o, a, s=sparse: s)
+            cone = lt.trace_cone(grid, origin, axis, half_angle, n_rays=n_rays)
+            fixation = lt.fixation_probability(bvm, origin, axis, half_angle=half_angle,
+                                               n_rays=n_rays, min_distance=0.2)
+            results.append((cone.cells, cone.weights, cone.t_first, fixation.cells,
+                            fixation.values, fixation.t_enter))
+        for boxed, sparse in zip(*results):
+            np.testing.assert_array_equal(boxed, sparse)
+
+
+def test_a_gaze_towards_the_robot_takes_the_sparse_sum():
+    from logsph_trace import cone as cone_module
+
+    assert cone_module._towards_the_centre((-0.2, 0.75, 3.0), (0.05, -0.79, -0.61))
+    assert not cone_module._towards_the_centre((0.4, 1.5, 1.2), (-0.1, -0.4, 1.0))

@@ -279,7 +279,7 @@ def test_serial_kernels_borrow_their_arrays():
     from logsph_trace import kernels
 
     keep = {"bisect_ray", "bisect_rows", "box_bases", "cells_of_points", "components", "entry_time",
-            "first_reach_order", "thibaudeau_ray", "thibaudeau_rows"}
+            "first_reach_order", "sparse_cone", "thibaudeau_ray", "thibaudeau_rows"}
     needs_runtime = (".sort(", "np.empty(", "np.zeros(", "np.full(", ".copy(")
     seen = set()
     for info in pkgutil.iter_modules(kernels.__path__):

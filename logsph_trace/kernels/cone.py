@@ -562,3 +562,97 @@ def fixation_boxes(offsets, starts, firsts, cells, t_enter, t_exit, weights, log
     out_cells, out_weight, out_first = _box_cells(weight, first, last_ray, low_j, low_k, span_k,
                                                   base, n_theta, j_shift)
     return out_cells, out_weight, out_first, needed
+
+
+@jit(runtime=True)
+def sparse_cone(offsets, starts, firsts, cells, t_enter, t_exit, weights, log_odds, n_theta,
+                n_phi, j_shift, fixation, min_distance, unknown, free_below, slots):
+    """``aggregate_boxes`` (``fixation`` False) or ``fixation_boxes`` (True) without boxes.
+
+    The same arguments (``log_odds`` and ``t_exit`` are read only for
+    fixation) and the same results, bit for bit, in the same (box) order,
+    for cones whose boxes would be mostly empty: from eyes facing the robot,
+    a cone crosses the shells near the eyes twice, far apart in azimuth and
+    elevation, and over the map's pole, so a shell's box spans most of it.
+    Here each cell the rays cross gets one entry of a compact list, found
+    through ``slots`` (one int32 per map cell, never cleared: an entry is
+    valid when the list's cell at that slot is the cell), so the work is
+    one pass over the segments and a sort of the cells reached.
+
+    The sums are the boxes' sums: each chunk of rays adds into its own
+    running sum, from 0, in ray order, and the chunks' sums are added
+    together in chunk order, as the boxes merge them. Serial: one thread.
+    """
+    n_chunks = starts.shape[0] - 1
+    length = 0
+    for chunk in range(n_chunks):
+        length += offsets[starts[chunk + 1]] - firsts[chunk]
+    cell_of = np.empty(length, dtype=np.int64)
+    partial = np.empty(length)
+    total = np.empty(length)
+    partial_chunk = np.empty(length, dtype=np.int64)
+    first = np.empty(length)
+    last_ray = np.empty(length, dtype=np.int64)
+    used = 0
+    for chunk in range(n_chunks):
+        for ray in range(starts[chunk], starts[chunk + 1]):
+            begin = firsts[chunk] if ray == starts[chunk] else offsets[ray]
+            clear = 1.0  # probability that nothing so far stopped the gaze
+            for seg in range(begin, offsets[ray + 1]):
+                flat = (np.int64(cells[seg, 0]) * n_theta + cells[seg, 1]) * n_phi + cells[seg, 2]
+                slot = np.int64(slots[flat])
+                if not (0 <= slot < used and cell_of[slot] == flat):
+                    slot = used
+                    used += 1
+                    slots[flat] = slot
+                    cell_of[slot] = flat
+                    partial[slot] = 0.0
+                    total[slot] = 0.0
+                    partial_chunk[slot] = chunk
+                    first[slot] = np.inf
+                    last_ray[slot] = -1
+                elif partial_chunk[slot] != chunk:
+                    total[slot] += partial[slot]  # an earlier chunk's sum, in chunk order
+                    partial[slot] = 0.0
+                    partial_chunk[slot] = chunk
+                first[slot] = min(first[slot], t_enter[seg])
+                if fixation:
+                    if t_exit[seg] <= min_distance:
+                        continue  # not counted, and not seen: met again beyond, it counts there
+                    if last_ray[slot] == ray:
+                        continue  # re-entered: counted at its first entry
+                    last_ray[slot] = ray
+                    p = stop_probability(log_odds, cells, seg, n_theta, n_phi, unknown,
+                                         free_below)
+                    partial[slot] += weights[ray] * p * clear
+                    clear *= 1.0 - p
+                else:
+                    partial[slot] += weights[ray] * (last_ray[slot] != ray)
+                    last_ray[slot] = ray
+    reached = 0
+    for slot in range(used):
+        reached += last_ray[slot] != -1
+    keys = np.empty(reached, dtype=np.int64)
+    rows = np.empty(reached, dtype=np.int64)
+    at = 0
+    for slot in range(used):
+        if last_ray[slot] == -1:
+            continue
+        k = cell_of[slot] % n_phi
+        j = (cell_of[slot] // n_phi) % n_theta
+        i = cell_of[slot] // (n_phi * n_theta)
+        keys[at] = (i * n_theta + shifted(j, j_shift, n_theta)) * n_phi + k  # box order
+        rows[at] = slot
+        at += 1
+    order = np.argsort(keys)
+    out_cells = np.empty((reached, 3), dtype=np.int32)
+    out_weight = np.empty(reached)
+    out_first = np.empty(reached)
+    for row in range(reached):
+        slot = rows[order[row]]
+        out_cells[row, 0] = cell_of[slot] // (n_phi * n_theta)
+        out_cells[row, 1] = (cell_of[slot] // n_phi) % n_theta
+        out_cells[row, 2] = cell_of[slot] % n_phi
+        out_weight[row] = total[slot] + partial[slot]
+        out_first[row] = first[slot]
+    return out_cells, out_weight, out_first
