@@ -200,6 +200,7 @@ def _scene_figure(grid, bvm, eyes, targets, points, path):
 
     fig = plt.figure(figsize=(7.5, 6.5))
     ax = fig.add_subplot(projection="3d")
+    ax.computed_zorder = False  # drawn in order: the gaze and the eyes over the cells
     cloud = points[::97]
     ax.scatter(cloud[:, 0], cloud[:, 2], cloud[:, 1], s=0.5, color="tab:blue", alpha=0.3)
     occupied = bvm.occupied(0.6)
@@ -217,12 +218,13 @@ def _scene_figure(grid, bvm, eyes, targets, points, path):
     ax.set_xlim(-0.8, 1.2)  # the table, the object and the person
     ax.set_ylim(1.0, 2.4)
     ax.set_zlim(-0.8, 0.3)
-    ax.view_init(elev=30, azim=-50)
+    ax.view_init(elev=22, azim=-125)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("z (m)")
     ax.set_zlabel("y (m, up)")
     ax.set_title("occupied cells nearer than 3 m (red; the wall is left out), the person's\n"
-                 "eyes (star), the gaze (yellow) and the first occupied cell it meets (green)",
+                 "eyes (star), the gaze (yellow) to the first occupied cell on it, and all\n"
+                 "the occupied cells on it (green: the object, then the table behind)",
                  fontsize=10)
     fig.subplots_adjust(left=0.02, right=0.92, bottom=0.04, top=0.9)
     save_figure(fig, path, dpi=90)
