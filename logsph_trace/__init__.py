@@ -10,17 +10,18 @@ from importlib import metadata as _metadata
 
 from ._validate import AngleUnitWarning, DepthUnitWarning, UnitWarning
 from .cone import ConeTrace, default_ray_count, trace_cone, trace_cones
-from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
-from .objects import (
+from .gaze import (
     GazeAccumulator,
     GazeObjects,
+    GazeTargets,
     ObjectHit,
-    Plane,
-    fit_plane,
+    fixation_probability,
     gaze_objects,
-    label_objects,
+    gaze_targets,
 )
-from .occupancy import GazeTargets, OccupancyGrid, ScanStats, fixation_probability, gaze_targets
+from .grid import Grid, cartesian_to_spherical, from_ros, spherical_to_cartesian
+from .objects import Plane, fit_plane, label_objects
+from .occupancy import OccupancyGrid, ScanStats
 from .sensor import DepthPoints, Gaze, depth_to_points, gaze_from_pitch_yaw, gaze_from_vector
 from .trace import METHODS, trace, trace_many
 from .traces import Trace, TraceBuffers, Traces

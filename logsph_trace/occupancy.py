@@ -1,13 +1,10 @@
-"""The occupancy map (the paper's BVM, section 3.3) and what a gaze lands on.
+"""The occupancy map (the paper's BVM, section 3.3).
 
 :class:`OccupancyGrid` stores log-odds per cell of a :class:`~logsph_trace.Grid`
 and integrates sensor scans as OctoMap does: each ray carves free space up to
 its end point and marks the end cell occupied, every cell updated at most once
 per scan (a hit wins over a miss), log-odds clamped so the map stays able to
-change. :func:`gaze_targets` applies the paper's Fig. 5 rule (cells on the gaze
-ray above a threshold); :func:`fixation_probability` asks which cell the gaze
-actually stops at, so an object hidden behind another is not reported as
-looked at.
+change. What a gaze lands on in it is :mod:`logsph_trace.gaze`'s.
 """
 
 import contextlib
@@ -26,12 +23,11 @@ from . import _validate as validate
 from ._batching import lap
 from ._files import atomic_write, npz_path, write_npz
 from ._jit import interrupts_after
-from .cone import aggregate_cone, cones_on_gpu, sample_rays
 from .grid import Grid
 from .kernels import occupancy as _kernels
 from .kernels.exact import AT_CENTRE
-from .sensor import depth_to_points, gaze_pair
-from .trace import cuda_backend, trace_many
+from .sensor import depth_to_points
+from .trace import cuda_backend
 
 
 @dataclass(frozen=True)
@@ -752,138 +748,6 @@ _SAVED_ARRAYS = frozenset(
 )
 
 
-@dataclass(frozen=True)
-class GazeTargets:
-    """Cells along a gaze, in order of distance, with a value each."""
-
-    cells: np.ndarray
-    values: np.ndarray
-    t_enter: np.ndarray
-
-    def __len__(self):
-        return self.cells.shape[0]
-
-
 def _check_occupancy(occupancy):
     if not isinstance(occupancy, OccupancyGrid):
         raise ValueError(f"occupancy must be an OccupancyGrid, got {type(occupancy).__name__}")
-
-
-def gaze_targets(occupancy, gaze, direction=None, threshold=0.6):
-    """Find the cells on the gaze ray whose occupancy exceeds ``threshold`` (Fig. 5's rule).
-
-    The first of three layers of one computation (see
-    :func:`~logsph_trace.gaze_objects`): one ray, and every occupied cell
-    on it, hidden or not.
-
-    Parameters
-    ----------
-    occupancy : OccupancyGrid
-    gaze : Gaze or array_like, shape (3,)
-        A :class:`~logsph_trace.Gaze`, or the eyes' position in the map's
-        frame, with ``direction``.
-    direction : array_like, shape (3,), optional
-        The gaze direction, when ``gaze`` is a position.
-    threshold : float
-        Probability above which a cell counts.
-
-    Returns
-    -------
-    GazeTargets
-        ``cells`` (u, 3), ``values`` their probabilities, ``t_enter`` the distance
-        at which the gaze first enters each, in order of distance.
-    """
-    _check_occupancy(occupancy)
-    origin, direction = gaze_pair(gaze, direction)
-    threshold = validate.probability("threshold", threshold)
-    origin = validate.point("origin", origin, validate.reach(occupancy.grid))
-    direction = validate.vector("direction", direction)
-    ray = trace_many(occupancy.grid, origin, direction, parallel=False)[0]
-    if len(ray) == 0:
-        return GazeTargets(ray.cells, np.empty(0), np.empty(0))
-    _, first = np.unique(ray.cells, axis=0, return_index=True)
-    first = np.sort(first)  # each cell at its first entry, in order of distance
-    cells = ray.cells[first]
-    with occupancy._lock:
-        values = occupancy._values_at(cells)
-    probability = 1.0 / (1.0 + np.exp(-values.astype(np.float64)))
-    above = probability > threshold
-    return GazeTargets(cells[above], probability[above], ray.t_enter[first][above])
-
-
-@interrupts_after
-def fixation_probability(occupancy, gaze, direction=None, half_angle=0.0, n_rays=None,
-                         pattern="fibonacci", weighting="gaussian", sigma=None,
-                         unknown=0.0, free_below=0.5, min_distance=0.0, dense=False):
-    """Probability that each cell is the first occupied cell the gaze meets.
-
-    For one ray, ``P(c) = p_c * prod(1 - p)`` over the cells in front of ``c``;
-    for a cone (``half_angle > 0``), summed over its rays by weight. An object
-    hidden behind another gets little: the gaze stops at the first one.
-    The second of three layers of one computation (see
-    :func:`~logsph_trace.gaze_objects`, which sums these over objects).
-
-    Parameters
-    ----------
-    occupancy : OccupancyGrid
-    gaze : Gaze or array_like, shape (3,)
-        A :class:`~logsph_trace.Gaze`, or the eyes' position in the map's
-        frame, with ``direction``.
-    direction : array_like, shape (3,), optional
-        The gaze direction, when ``gaze`` is a position.
-    half_angle, n_rays, pattern, weighting, sigma :
-        The gaze cone, as for :func:`~logsph_trace.trace_cone`; 0 is one ray.
-    unknown : float
-        Occupancy assumed for cells never observed (log-odds exactly 0). The
-        default 0 lets the gaze pass through unobserved space instead of
-        stopping there with probability 1/2.
-    free_below : float
-        Cells the map believes free (probability below this) do not stop the
-        gaze. An OctoMap-style map keeps free cells at p = 0.12 to 0.4, never
-        0, and with the literal formula (``free_below=0``) the dozen free
-        cells in front of an object would absorb most of the gaze before it
-        gets there.
-    min_distance : float
-        Cells the gaze leaves within this distance of its origin are ignored
-        (the person's own head, hair, glasses in the map).
-    dense : bool
-        Return an array of shape ``grid.shape`` instead of sparse results.
-
-    Returns
-    -------
-    GazeTargets or numpy.ndarray
-        Sparse: cells with a non-zero probability, most probable first
-        (``t_enter`` is where the gaze first reaches each). Dense: the map.
-    """
-    _check_occupancy(occupancy)
-    origin, direction = gaze_pair(gaze, direction)
-    grid = occupancy.grid
-    unknown = validate.number("unknown", unknown, "a probability in [0, 1]")
-    if not 0.0 <= unknown <= 1.0:
-        raise ValueError(f"unknown must be a probability in [0, 1], got {unknown!r}")
-    min_distance = validate.number("min_distance", min_distance, ">= 0")
-    if not (np.isfinite(min_distance) and min_distance >= 0.0):
-        raise ValueError(f"min_distance must be >= 0, got {min_distance!r}")
-    free_below = validate.number("free_below", free_below, "a probability in [0, 1]")
-    if not 0.0 <= free_below <= 1.0:
-        raise ValueError(f"free_below must be a probability in [0, 1], got {free_below!r}")
-    origin = validate.point("origin", origin, validate.reach(grid))
-    directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
-                                          weighting, sigma)
-    # Traced as trace_cone traces; each cell's first-occupied probability is
-    # summed in the same chunked pass that sums a cone's weights.
-    with occupancy._lock:  # not changed by another thread meanwhile
-        fixation = (occupancy._flat(), min_distance, unknown, free_below)
-        if occupancy.device == "cuda":
-            cells, values, t_first = cones_on_gpu(grid, origin[None],
-                                                  [(directions, ray_weights)], fixation)[0]
-        else:
-            cells, values, t_first = aggregate_cone(grid, origin, directions, ray_weights,
-                                                    fixation)
-    if dense:
-        out = np.zeros(grid.shape)
-        out[tuple(cells.T)] = values
-        return out
-    keep = values > 0
-    order = np.argsort(-values[keep], kind="stable")
-    return GazeTargets(cells[keep][order], values[keep][order], t_first[keep][order])

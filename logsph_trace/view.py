@@ -12,7 +12,7 @@ import numpy as np
 
 from . import _validate as validate
 from ._files import atomic_write
-from .objects import GazeObjects
+from .gaze import GazeObjects
 from .occupancy import _check_occupancy
 from .sensor import Gaze
 

@@ -7,7 +7,8 @@ from oracle import first_occupied, reference_log_odds
 
 import logsph_trace as lt
 from logsph_trace._validate import row_norms
-from logsph_trace.occupancy import OccupancyGrid, fixation_probability, gaze_targets
+from logsph_trace.gaze import fixation_probability, gaze_targets
+from logsph_trace.occupancy import OccupancyGrid
 
 GRID = lt.Grid(0.3, 10.0, 32, 90, 45)
 

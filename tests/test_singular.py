@@ -34,7 +34,8 @@ from singular import (
 )
 
 import logsph_trace as lt
-from logsph_trace.occupancy import OccupancyGrid, fixation_probability, gaze_targets
+from logsph_trace.gaze import fixation_probability, gaze_targets
+from logsph_trace.occupancy import OccupancyGrid
 
 RAYS_PER_OFFSET = 8  # 9 grids x 5 classes x 6 offsets x 8 = 2,160 rays, each traced 3 ways
 TANGENTS = ("sphere_tangent", "phi_turn")
