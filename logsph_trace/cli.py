@@ -296,10 +296,6 @@ def cmd_demo(args):
     return 0
 
 
-# The camera's OpenCV frame (x right, y down, z forward) from the map's, for pose=None.
-CAMERA_FROM_MAP = np.diag([-1.0, -1.0, 1.0])
-
-
 def _read_names(path):
     """Read a JSON object of label -> name (``{"1": "motorcycle"}``)."""
     try:
@@ -336,6 +332,7 @@ def _look_grid(args, depth_points):
 def cmd_look(args):
     """``logsph-trace look``: rank the objects a gaze may land on, in a depth image."""
     from . import OccupancyGrid, depth_to_points, fit_plane, gaze_objects, label_objects
+    from .demo import CAMERA_FROM_MAP
     from .images import read_image
     from .sensor import gaze_from_pitch_yaw, gaze_from_vector
 

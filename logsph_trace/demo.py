@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ._files import save_figure
+from .sensor import DEFAULT_ROTATION
 
 # A person standing 3 m in front of the camera, behind the motorcycle and
 # facing the camera, eyes 0.75 m above it: the camera's OpenCV frame
@@ -32,7 +33,7 @@ HALF_ANGLE_DEG = 5.0
 # The map: 0.3 to 8 m, 64 log-spaced shells, 1-degree cells.
 GRID = (0.3, 8.0, 64, 360, 180)
 # pose=None: the camera's (x, y, z) is the map's (-x, -y, z), and back.
-CAMERA_FROM_MAP = np.diag([-1.0, -1.0, 1.0])
+CAMERA_FROM_MAP = DEFAULT_ROTATION.T
 # The map's axes as the camera sees them, for figures of a map built with pose=None.
 MAP_AXES = ("x (m, to the camera's left)", "y (m, up)", "z (m, forward)")
 

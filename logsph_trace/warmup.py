@@ -47,6 +47,7 @@ def warmup():
     from ._batching import PARALLEL_MIN_RAYS
     from ._validate import PARALLEL_CHECK_ROWS
     from .occupancy import COHERENT_MIN_RAYS
+    from .sensor import DEFAULT_ROTATION
 
     start = time.perf_counter()
     rng = np.random.default_rng(0)
@@ -69,7 +70,7 @@ def warmup():
     labels = (np.arange(rows * columns).reshape(rows, columns) // 4000 + 1).astype(np.int32)
     intrinsics = (200.0, 200.0, columns / 2, rows / 2)
     for sensor in ((0.0, 0.0, 0.0), (0.05, 0.02, 0.0), (0.0, 1.0, 0.0)):
-        pose = (np.diag([-1.0, -1.0, 1.0]), np.asarray(sensor))
+        pose = (DEFAULT_ROTATION, np.asarray(sensor))
         bvm = OccupancyGrid(grid).integrate_depth(depth, intrinsics, pose=pose, labels=labels)
         points = depth_to_points(depth, intrinsics, pose=pose).points
         bvm.integrate(points[:64], sensor)
