@@ -13,7 +13,7 @@ SKIPPED_DIRS = {".git", ".venv", ".venv-min", ".venv-cuda", "site", "build", "__
                 ".pytest_cache", ".benchmarks", ".hypothesis", "logsph-trace-out", ".whl", ".cache"}
 TEXT = {".py", ".md", ".ipynb", ".toml", ".txt", ".sh", ".yml", ".yaml", ".json", ".cfg", ""}
 WORK_LOG = [
-    (re.compile(r"\bVMs?\b"), "a VM"),
+    (re.compile(r"\bVMs?\b"), "the machine the work ran on"),
     (re.compile(r"firecracker", re.I), "the sandbox"),
     (re.compile(r'(?<!scope=")\bsessions?\b', re.I), "a period of work"),
     (re.compile(r"\bissues? ?#? ?\d+", re.I), "an issue number"),
