@@ -478,7 +478,8 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
     return _result(offsets, output, used, buffers, start)
 
 
-def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays):
+def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays,
+                  parallel=True):
     """Trace contiguous chunks of rays, ``starts[c]:starts[c + 1]``, each into its own region.
 
     Each chunk is one ``prange`` iteration and appends to its region; the
@@ -489,9 +490,18 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
     chunk ``c`` holds rays ``starts[c]:starts[c + 1]``, written from
     ``regions[c]`` to ``ends[c]``, and ray ``r``'s segments are
     ``offsets[r]:offsets[r + 1]`` (gaps between regions).
+
+    Fewer rays than ``PARALLEL_MIN_RAYS`` (a gaze's cone), one thread, or
+    ``parallel=False``: the rays are bounded and traced in order on this
+    thread by ``exact.trace_span``, the regions back to back (no gaps). The
+    chunks are the same, so what is summed per chunk is too; and the first
+    answer compiles neither parallel kernel.
     """
     start = time.perf_counter()
     n_rays = origins.shape[0]
+    if not parallel or n_rays < PARALLEL_MIN_RAYS or numba.get_num_threads() == 1:
+        return _trace_regions_serial(grid, origins, directions, t_max, args, starts,
+                                     segment_arrays, start)
     cumulative = np.zeros(n_rays + 1, dtype=np.int64)
     _exact.bound_counts(origins, directions, args, cumulative[1:])
     np.cumsum(cumulative, out=cumulative)
@@ -506,6 +516,30 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
                                t_exit, offsets)
     lap("trace", start)
     return starts, regions, ends, offsets, cells, t_enter, t_exit
+
+
+def _trace_regions_serial(grid, origins, directions, t_max, args, starts, segment_arrays, start):
+    """``trace_regions`` on this thread: a bound pass, then the rays in order, back to back."""
+    n_rays = origins.shape[0]
+    size = int(_exact.scratch_size(*grid.shape))
+    times = np.empty((3, size), dtype=np.float64)
+    zones = np.empty((3, size), dtype=np.int64)
+    lookups = np.empty(8, dtype=np.int64)
+    offsets = np.empty(n_rays + 1, dtype=np.int64)
+    offsets[0] = 0
+    no_segments = (np.empty((0, 3), dtype=np.int32), np.empty(0), np.empty(0))
+    _exact.trace_span(0, n_rays, origins, directions, t_max, args, times, zones, lookups,
+                      _exact.BOUND, *no_segments, offsets, 0, np.iinfo(np.int64).max)
+    total = int(offsets[1:].sum()) + int(_exact.max_segments(*grid.shape))
+    validate.fits("n_rays", total * SEGMENT_BYTES + 16 * n_rays,
+                  f"tracing {n_rays:,} rays of cones (at most {total:,} segments)")
+    cells, t_enter, t_exit = segment_arrays(total)
+    start = lap("bound", start)
+    _exact.trace_span(0, n_rays, origins, directions, t_max, args, times, zones, lookups,
+                      _exact.TRACE, cells, t_enter, t_exit, offsets, 0, total)
+    regions = offsets[starts]
+    lap("trace", start)
+    return starts, regions, regions[1:].copy(), offsets, cells, t_enter, t_exit
 
 
 _scratch = threading.local()

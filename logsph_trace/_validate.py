@@ -272,16 +272,19 @@ def _rows_of_three(name, value):
     return array
 
 
-# From this many rows on, finiteness is checked and rows' lengths are taken on
-# all threads (``all_finite``, ``row_norms``); below, one thread is quicker than
-# waking the threads (and the serial build of ``row_norms`` compiles faster).
+# From this many rows on, rows' lengths are taken on all threads (``row_norms``);
+# below, one thread is quicker than waking the threads (and the serial build
+# of ``row_norms`` compiles faster).
 PARALLEL_CHECK_ROWS = 1 << 15
 
 
 def _all_finite(array):
-    """Whether a C-contiguous (m, 3) float64 array holds no NaN or inf (one flat pass)."""
-    if array.shape[0] >= PARALLEL_CHECK_ROWS:
-        return bool(_locate.all_finite(array.reshape(-1)))
+    """Whether a C-contiguous (m, 3) float64 array holds no NaN or inf (one flat pass).
+
+    numpy's, on one thread: a parallel kernel took 0.47 ms against numpy's
+    1.01 ms for a million rows (the motorcycle frame's scan), and 0.7 s to
+    compile on the first call.
+    """
     return bool(np.isfinite(array).all())  # a reduction per row costs 30x more
 
 

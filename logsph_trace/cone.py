@@ -314,10 +314,13 @@ def aggregate_cells(grid, offsets, cells, t_enter, origin, axis, weights, chunks
             t_exit, log_odds, min_distance, unknown, free_below = t_enter, _NO_MAP, 0.0, 0.0, 0.0
         else:
             t_exit, log_odds, min_distance, unknown, free_below = fixation
-        cells, weights, t_first = _cone.sparse_cone(
+        cells, weights, t_first, keys = _cone.sparse_cone(
             offsets, starts, firsts, cells, t_enter, t_exit, weights, log_odds, grid.n_theta,
             grid.n_phi, j_shift, fixation is not None, min_distance, unknown, free_below,
             _slots(grid))
+        in_boxes = np.argsort(keys)  # the boxes' order: ties by first reach keep it
+        cells, weights, t_first = np.take(cells, in_boxes, axis=0), weights[in_boxes], \
+            t_first[in_boxes]
         return by_first_reach(cells, weights, t_first, normalise=fixation is None)
     pool, ray_pool = batching.box_pools()
     if fixation is None:
@@ -408,7 +411,7 @@ def by_first_reach(cells, weights, t_first, normalise):
 
     The weights are normalised to sum to 1 if ``normalise``.
     """
-    order = _cone.first_reach_order(t_first)
+    order = np.argsort(t_first, kind="stable")
     weights = weights[order]
     if normalise:
         _cone.normalise(weights)

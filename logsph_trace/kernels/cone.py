@@ -126,10 +126,10 @@ def first_reach_order(t_first):
     return order
 
 
-@jit(parallel=True)
+@jit
 def sample_cones(axes, half_angles, ray_at, fibonacci, rings, sigmas, directions, angles,
                  weights):
-    """Sample the rays of many cones, one ray per ``prange`` iteration.
+    """Sample the rays of many cones.
 
     Cone ``c`` has the unit axis ``axes[c]``, the half-angle ``half_angles[c]``
     and rays ``ray_at[c]:ray_at[c + 1]`` of the outputs ``directions`` (n, 3),
@@ -141,16 +141,19 @@ def sample_cones(axes, half_angles, ray_at, fibonacci, rings, sigmas, directions
     turned by half a step (the count must be 1 + 3 R (R + 1)). Weights:
     ``exp(-angle^2 / (2 sigma^2))`` for ``sigmas[c] > 0``, relative to the
     ray nearest the axis (a tiny sigma cannot underflow them all), else
-    uniform; normalised per cone (``normalise``), one cone per ``prange``
-    iteration.
+    uniform; normalised per cone (``normalise``). On one thread: a cone's
+    few thousand rays take microseconds, and a parallel loop would take
+    seconds more to compile on the first call.
 
     Each ray depends only on its cone and its index in it, so a cone's rays
     are the same bits whatever else the call holds: :func:`trace_cone` and
     :func:`trace_cones` sample through this one kernel.
     """
     n_cones = ray_at.shape[0] - 1
-    for ray in prange(ray_at[n_cones]):
-        c = np.searchsorted(ray_at, ray, side="right") - 1
+    c = 0
+    for ray in range(ray_at[n_cones]):
+        while ray >= ray_at[c + 1]:
+            c += 1
         start, n_rays = ray_at[c], ray_at[c + 1] - ray_at[c]
         x, y, z = axes[c, 0], axes[c, 1], axes[c, 2]
         if n_rays == 1:
@@ -170,7 +173,7 @@ def sample_cones(axes, half_angles, ray_at, fibonacci, rings, sigmas, directions
                                                           + sin_around * second_z)
         angles[ray] = angle
         weights[ray] = -0.5 * (angle / sigmas[c]) ** 2 if sigmas[c] > 0 else 0.0
-    for c in prange(n_cones):
+    for c in range(n_cones):
         largest = -np.inf  # the largest exponent: the ray nearest the axis
         nearest = np.inf
         for ray in range(ray_at[c], ray_at[c + 1]):
@@ -582,6 +585,9 @@ def sparse_cone(offsets, starts, firsts, cells, t_enter, t_exit, weights, log_od
     The sums are the boxes' sums: each chunk of rays adds into its own
     running sum, from 0, in ray order, and the chunks' sums are added
     together in chunk order, as the boxes merge them. Serial: one thread.
+    The cells come back in the order first reached, with each one's box-order
+    key (unique): the caller sorts them by it (``np.argsort``, outside, so
+    that no sort is compiled here).
     """
     n_chunks = starts.shape[0] - 1
     length = 0
@@ -644,15 +650,14 @@ def sparse_cone(offsets, starts, firsts, cells, t_enter, t_exit, weights, log_od
         keys[at] = (i * n_theta + shifted(j, j_shift, n_theta)) * n_phi + k  # box order
         rows[at] = slot
         at += 1
-    order = np.argsort(keys)
     out_cells = np.empty((reached, 3), dtype=np.int32)
     out_weight = np.empty(reached)
     out_first = np.empty(reached)
     for row in range(reached):
-        slot = rows[order[row]]
+        slot = rows[row]
         out_cells[row, 0] = cell_of[slot] // (n_phi * n_theta)
         out_cells[row, 1] = (cell_of[slot] // n_phi) % n_theta
         out_cells[row, 2] = cell_of[slot] % n_phi
         out_weight[row] = total[slot] + partial[slot]
         out_first[row] = first[slot]
-    return out_cells, out_weight, out_first
+    return out_cells, out_weight, out_first, keys

@@ -32,6 +32,7 @@ Every loop runs over a count fixed beforehand, at most ``scratch_size``.
 """
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import prange
@@ -73,7 +74,7 @@ PARALLEL = 16.0 * EPSILON
 AT_CENTRE = 1e-20
 
 
-@jit
+@jit(inline="always")
 def _sphere_time(t_closest, h2, radius2, outward):
     """Crossing of a sphere on the inward or outward half of the line (Eq. 9a, corrected)."""
     half_chord = math.sqrt(max(radius2 - h2, 0.0))
@@ -602,13 +603,45 @@ def _reverse(row, first, count):
         row[first + count - 1 - k] = a
 
 
-@jit(inline="always")
-def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_start, phi_tan2,
-                  phi_nappe, lanes, flat_from, flat_to, t_closest, cx, cy, cz, dx, dy, dz, cab,
-                  ca2, b2, t_final, slack, times, zones):
+class Line(NamedTuple):
+    """A ray's line about its closest point to the centre, as the cone crossings need it.
+
+    ``t_closest`` and the closest point ``c`` (``line_geometry``), the unit
+    direction ``d``, and the x-z dot products ``cab`` = C.B, ``ca2`` =
+    |C|^2, ``b2`` = |B|^2 of C = (c_x, c_z) and B = (d_x, d_z).
+    """
+
+    t_closest: float
+    cx: float
+    cy: float
+    cz: float
+    dx: float
+    dy: float
+    dz: float
+    cab: float
+    ca2: float
+    b2: float
+
+
+# ``_branch_times``'s ``first_branch`` and its first ``n_p``: NumPy scalars,
+# not literals, so that both calls of each ray share one compiled function (a
+# literal argument gets a signature of its own: about 1.3 s more, cold).
+FIRST_BRANCH = np.bool_(True)
+SECOND_BRANCH = np.bool_(False)
+NO_CROSSINGS = np.int64(0)
+
+
+@jit
+def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_start, grid,
+                  line, t_final, slack, times, zones):
     """The ``steps`` cone crossings of one monotone branch of phi, from ``zone`` in
     direction ``sigma``, clamped into ``[t_prev, t_high]``, appended to row
     ``PHI`` after its first ``n_p``; stops at the first past ``t_final``.
+
+    A function of its own, not inlined: each ray calls it twice, and
+    inlining both calls cost 3.2 s more to compile ``trace_span`` and
+    nothing measurable at run time (``python -m bench.ab HEAD~ --threads 1``
+    on the commit that made it a call: 1.005, within the probe's noise).
 
     A branch's crossings past the ray's exit are never used, so
     ``_cone_times`` times the cones ``CONE_BLOCK`` at a time, in the order
@@ -618,6 +651,10 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
     at least ``lanes`` cones (see ``phi_times``). Returns (``n_p``,
     ``t_prev``, ``zone``, whether a crossing past ``t_final`` ended the list).
     """
+    phi_tan2 = grid.phi_tan2
+    phi_nappe = grid.phi_nappe
+    lanes = phi_tan2.shape[0] - grid.phi_edges.shape[0] + 1
+    t_closest, cx, cy, cz, dx, dy, dz, cab, ca2, b2 = line
     row = times[PHI]
     step = 0
     t_run = t_prev
@@ -628,7 +665,7 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
         low = zone + 1 if sigma > 0 else zone - count + 1
         _cone_times(low, max(count, lanes), phi_tan2, phi_nappe, row, n_p + 1, t_closest, cy, dy,
                     cab, ca2, b2, first_branch, branch_start, slack)
-        if low < flat_to and flat_from < low + count:  # a cone all but flat in this block
+        if low < grid.phi_flat_to and grid.phi_flat_from < low + count:  # all but flat
             _flat_cone_times(low, count, phi_tan2, phi_nappe, row, n_p + 1, t_closest, cx, cy,
                              cz, dx, dy, dz, cab, ca2, b2, first_branch, branch_start, slack)
         if sigma < 0:
@@ -666,16 +703,11 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
     scalar code. Unpadded (the GPU's), a block times only the cones it needs.
     """
     inf = np.inf
-    phi_tan2 = grid.phi_tan2
-    phi_nappe = grid.phi_nappe
-    lanes = phi_tan2.shape[0] - grid.phi_edges.shape[0] + 1
-    b2 = dx * dx + dz * dz
-    cab = cx * dx + cz * dz
-    ca2 = cx * cx + cz * cz
+    line = Line(t_closest, cx, cy, cz, dx, dy, dz, cx * dx + cz * dz, cx * cx + cz * cz,
+                dx * dx + dz * dz)
     n_p, t_prev, zone, done = _branch_times(
-        kp, 1 if ph2_start > kp else -1, ph1_steps, t_start, t_turn, 0, True, t_start, phi_tan2,
-        phi_nappe, lanes, grid.phi_flat_from, grid.phi_flat_to, t_closest, cx, cy, cz, dx, dy, dz,
-        cab, ca2, b2, t_final, slack, times, zones,
+        kp, 1 if ph2_start > kp else -1, ph1_steps, t_start, t_turn, NO_CROSSINGS, FIRST_BRANCH,
+        t_start, grid, line, t_final, slack, times, zones,
     )
     if ph_jump == 1:
         _, t_prev = _clamp(t_turn, t_prev, inf)
@@ -688,10 +720,8 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
             n_p += 1
     if not done:
         n_p, _, _, _ = _branch_times(
-            zone, 1 if kp_limit > zone else -1, ph2_steps, t_prev, inf, n_p, False,
-            t_turn if t_turn < inf else t_start, phi_tan2, phi_nappe, lanes, grid.phi_flat_from,
-            grid.phi_flat_to, t_closest, cx, cy, cz, dx, dy, dz, cab, ca2, b2, t_final, slack,
-            times, zones,
+            zone, 1 if kp_limit > zone else -1, ph2_steps, t_prev, inf, n_p, SECOND_BRANCH,
+            t_turn if t_turn < inf else t_start, grid, line, t_final, slack, times, zones,
         )
     return n_p
 

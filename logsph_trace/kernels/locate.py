@@ -198,42 +198,6 @@ def unit_rays(origins, directions, units, reach2):
     return bad == 0
 
 
-@jit(parallel=True)
-def all_finite(values):
-    """Whether every value of a 1D float64 array is finite (no NaN, no inf).
-
-    ``x * 0.0`` is 0 for a finite x and NaN otherwise, and a sum holding a
-    NaN is NaN. In blocks on all threads, with no temporary array; each
-    block sums into eight independent accumulators, so the adds vectorise
-    without reordering (fastmath would let LLVM assume there is no NaN).
-    An earlier form, counting ``not x - x == 0.0``, ran 3.7x slower than
-    this on one thread (``bench/results/misuse_and_glue.md``).
-    """
-    n = values.shape[0]
-    bad = 0
-    for block in prange((n + 4095) // 4096):
-        low = block * 4096
-        high = min(n, low + 4096)
-        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
-        k = low
-        while k + 8 <= high:
-            s0 += values[k] * 0.0
-            s1 += values[k + 1] * 0.0
-            s2 += values[k + 2] * 0.0
-            s3 += values[k + 3] * 0.0
-            s4 += values[k + 4] * 0.0
-            s5 += values[k + 5] * 0.0
-            s6 += values[k + 6] * 0.0
-            s7 += values[k + 7] * 0.0
-            k += 8
-        total = ((s0 + s1) + (s2 + s3)) + ((s4 + s5) + (s6 + s7))
-        while k < high:
-            total += values[k] * 0.0
-            k += 1
-        bad += not total == 0.0
-    return bad == 0
-
-
 @jit
 def azimuth(x, z):
     """theta = atan2(x, z); ``+ 0.0`` turns -0.0 into +0.0 so the y axis has theta 0."""
