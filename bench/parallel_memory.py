@@ -1,9 +1,8 @@
 """Peak memory and time of a parallel trace_many against its output.
 
 Run from a checkout: ``python bench/parallel_memory.py [N_RAYS]`` (default 300,000 random
-rays on the 128^3 grid of bench.run). For the serial pass, the public parallel call (two
-halves on two threads, ordered chunks on more) and the ordered chunks forced (at least three
-workers), it prints
+rays on the 128^3 grid of bench.run). For the serial pass, the public parallel call (ordered
+chunks) and the ordered chunks forced (at least three workers), it prints
 the best time of two calls and, over one more call, as multiples of the output's bytes:
 
 * resident: the growth of the process's peak resident memory (Linux's ``VmHWM``, restarted
@@ -11,9 +10,8 @@ the best time of two calls and, over one more call, as multiples of the output's
 * allocated: tracemalloc's peak, which counts address space reserved but never touched;
 * held: the bytes the result's arrays keep allocated (their bases).
 
-Resident figures include the pages at the output's edges (huge pages of 2 MiB) and, for
-the halves, the front thread's block scratch; the ordered chunks' scratch is kept between
-calls, so a call after the first adds none.
+Resident figures include the pages at the output's edges (huge pages of 2 MiB); the
+ordered chunks' scratch is kept between calls, so a call after the first adds none.
 """
 
 import sys

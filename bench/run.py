@@ -8,8 +8,8 @@ Prints a table and writes ``bench/results/traversal.json`` (and ``.md``).
 Machines are noisy: the two kernels are timed in alternating rounds of the
 same run and the figure that matters is their ratio. Each timing is the best
 of ``--repeats`` rounds of ``trace_many`` (output arrays included). Both
-kernels batch the same way: one appending pass on one thread, two halves
-meeting in the middle on two, ordered chunks on more; per thread count the
+kernels batch the same way: one appending pass on one thread, ordered
+chunks on more; per thread count the
 table gives the time in each phase. Four times the exact output's size of
 memory is written once before timing (``--prime MB``; 0 skips it): on a fresh
 virtual machine a process's first touch of memory costs the host a fault as well
@@ -20,7 +20,6 @@ import argparse
 from pathlib import Path
 
 import numba
-import numpy as np
 
 import logsph_trace as lt
 from bench.workload import (
@@ -35,7 +34,7 @@ from bench.workload import (
     timed,
     write_results,
 )
-from logsph_trace import _batching, _validate
+from logsph_trace import _batching
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -80,11 +79,6 @@ def measure(n_rays, cells, repeats, thread_counts, prime=None):
     segments = lt.trace_many(grid, origins, directions, out=buffers).cells.shape[0]
     primed = prime_memory(4 * segments * _batching.SEGMENT_BYTES / 2**20 if prime is None
                           else prime)
-    # The ordered chunks, which trace_many takes from 3 threads on, timed on
-    # every thread count: on a 2-core machine this is the only view of them.
-    unit_origins, unit_directions = _validate.rays(origins, directions)
-    far = np.full(n_rays, np.inf)
-    ordered = [t for t in thread_counts if t > 1]
     runs = {}
     for _ in range(repeats):  # alternate everything so that all see the same noise
         for threads in thread_counts:
@@ -96,9 +90,6 @@ def measure(n_rays, cells, repeats, thread_counts, prime=None):
                 ("exact_buffers", lambda: lt.trace_many(grid, origins, directions,
                                                         parallel=parallel, out=buffers)),
             ]
-            if threads in ordered:
-                calls.append(("exact_ordered", lambda: _batching.run_exact_ordered(
-                    grid, unit_origins, unit_directions, far, min(threads, most))))
             for name, call in calls:
                 runs[name, threads] = timed(call, runs.get((name, threads)),
                                             keep=lambda traces: int(traces.cells.shape[0]))
@@ -106,7 +97,7 @@ def measure(n_rays, cells, repeats, thread_counts, prime=None):
 
     def summary(name, threads):
         run = runs[name, threads]
-        one = runs["exact" if name == "exact_ordered" else name, 1]["seconds"]
+        one = runs[name, 1]["seconds"]
         return {
             "threads": threads,
             "seconds": run["seconds"],
@@ -117,7 +108,7 @@ def measure(n_rays, cells, repeats, thread_counts, prime=None):
             "speedup_over_one_thread": one / run["seconds"],
             "phases_s": run["phases"],
             # What runs on one thread whatever the thread count: Python between
-            # the kernels, the halves' sampled bounds and the final shrink, and
+            # the kernels, the ordered chunks' sampled bounds and the final shrink, and
             # the input check, against the one-thread time.
             "serial_part_of_one_thread": sum(run["phases"].get(p, 0.0) for p in SERIAL) / one,
         }
@@ -125,7 +116,6 @@ def measure(n_rays, cells, repeats, thread_counts, prime=None):
     exact = [summary("exact", t) for t in thread_counts]
     reference = [summary("amanatides_woo", t) for t in thread_counts]
     reused = [summary("exact_buffers", t) for t in thread_counts]
-    in_order = [summary("exact_ordered", t) for t in ordered]
     return {
         "rays": n_rays,
         "cells_per_axis": cells,
@@ -134,7 +124,6 @@ def measure(n_rays, cells, repeats, thread_counts, prime=None):
         "exact": exact,
         "amanatides_woo": reference,
         "exact_into_reused_buffers": reused,
-        "exact_in_ordered_chunks": in_order,
         "exact_over_amanatides_woo_per_voxel": [
             e["ns_per_voxel"] / r["ns_per_voxel"] for e, r in zip(exact, reference)],
     }
@@ -170,8 +159,7 @@ def table(result, first_call):
         "|---|---:|---:|---:|" + "---:|" * len(PHASES) + "---:|",
     ]
     for name, rows in (("exact", result["exact"]), ("Amanatides-Woo", result["amanatides_woo"]),
-                       ("exact, out=TraceBuffers", result["exact_into_reused_buffers"]),
-                       ("exact, ordered chunks", result.get("exact_in_ordered_chunks", []))):
+                       ("exact, out=TraceBuffers", result["exact_into_reused_buffers"])):
         for row in rows:
             phases = " | ".join(f"{row['phases_s'].get(p, 0.0) * 1e3:.1f}" for p in PHASES)
             lines.append(f"| {name} | {row['threads']} | {row['seconds'] * 1e3:.1f} "
@@ -180,10 +168,7 @@ def table(result, first_call):
     lines += ["", "speed-up: over the same call on 1 thread; serial part: the phases that run "
               "on one thread whatever the thread count (bound, shrink, other) and the input check "
               "(check: on all threads from 32,768 rays, counted all the same), as a share of the "
-              "one-thread time; out=TraceBuffers: the same arrays reused every call; ordered "
-              "chunks: the path trace_many takes from 3 threads on (2 threads take the "
-              "halves), forced at every thread count above 1, speed-up over exact on 1 "
-              "thread"]
+              "one-thread time; out=TraceBuffers: the same arrays reused every call"]
     if first_call:
         lines += [
             "",

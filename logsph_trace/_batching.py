@@ -11,20 +11,7 @@ of bounded size.
   batch's expected size (a copy of the few rays' segments traced so far);
   at the end they shrink in place to the exact size (``resized``), so the
   result holds no spare room.
-* **Two threads** (``run_halves``): the threads meet in the middle. One
-  traces the back half of the batch in order, appending up from an anchor;
-  the other the front half from its last ray back, each block of rays
-  placed just below the rays after it, down from the same anchor. Every
-  segment is written to its final place by the thread that traced it
-  (which also takes the page faults): straight there by the back thread,
-  through a block scratch by the front one, whose copy bypasses the cache
-  (``stream.stream_segments``). No pack, no pre-touched output.
-  The anchor and the reservation come from upper bounds on a sample of the
-  rays, with a margin; the result is views of the stretch written, and the
-  reserved pages around it are never touched (address space, not memory).
-  Should a half run out of room (a sample off by more than the margin) or
-  the reservation not fit in memory, the batch goes to the ordered chunks.
-* **More threads** (``run_ordered``): the rays are cut into small chunks,
+* **Two threads or more** (``run_ordered``): the rays are cut into small chunks,
   taken in order by the threads from a shared counter. A thread traces its
   chunk into one of its two scratch buffers (small enough to stay in the
   cache), posts the chunk's count, and copies the chunk it traced before to
@@ -33,18 +20,18 @@ of bounded size.
   Every segment is written to the output once, bypassing the cache, by the
   thread that traced it; nothing runs on one thread but the sample of
   bounds, and no thread waits for the others to end a round. The output is
-  reserved like the halves', from a sample of bounds with a margin, and
-  shrinks in place to the exact size at the end; its fresh pages are
+  reserved from a sample of upper bounds on the rays' segments, with a
+  margin, and shrinks in place to the exact size at the end; its fresh pages are
   faulted in by the same threads between chunks, a block by one thread, a
   little ahead of the chunks. Should it be too small (a sample off by
   more than the margin), the rows placed so far stay, the output grows,
   and the rest is traced again.
-* The exact method and the Amanatides-Woo baseline run on all three
+* The exact method and the Amanatides-Woo baseline run on both
   (their ``BatchKernels``), so their timings compare like for like. The
   paper's baselines (``run_csr``) take a count pass, a prefix sum and a
   fill pass of one ``*_rows`` kernel.
 * **Cones** (``trace_regions``): one region per chunk, sized by a bound pass
-  (``exact.bound_counts``: each ray's set-up, no stepping), so none can
+  (``bound_counts``: each ray's set-up, no stepping), so none can
   overflow; their segments are read once, by the aggregation.
 
 The ordered path's and the cones' scratch arrays are per Python thread and
@@ -66,6 +53,7 @@ import numpy as np
 from . import _validate as validate
 from .kernels import exact as _exact
 from .kernels import ordered as _ordered
+from .kernels.locate import BLOCK
 from .traces import Traces
 
 SEGMENT_BYTES = 12 + 8 + 8  # a cell (3 x int32), t_enter, t_exit
@@ -80,7 +68,7 @@ def phase_times():
 
     The batch phases are "check" (the input checks of ``trace_many``, on
     all threads from ``_validate.PARALLEL_CHECK_ROWS`` rays), "bound" (the
-    parallel paths' sampled bounds), "allocate", "trace", "shrink" and "other"
+    ordered chunks' sampled bounds), "allocate", "trace", "shrink" and "other"
     (Python between the kernels); a cone's are "bound", "trace" and
     "aggregate", an integration's "prepare", "mark" and "apply". Only this
     thread's calls are counted.
@@ -185,7 +173,7 @@ def run_serial(span, inputs, n_rays, worst, buffers=None):
     """
     start = time.perf_counter()
     offsets = _ray_offsets(n_rays, buffers)
-    capacity = 2 * worst + 32 * min(n_rays, _exact.BLOCK)
+    capacity = 2 * worst + 32 * min(n_rays, BLOCK)
     held = None if buffers is None else buffers.segments()
     if held is not None and held[0].shape[0] >= capacity:
         cells, t_enter, t_exit = held
@@ -209,7 +197,7 @@ def run_serial(span, inputs, n_rays, worst, buffers=None):
 
 
 # Below this many rays a batch is traced on one thread even with parallel=True:
-# waking the threads for the sampled bounds and the halves costs about what a
+# waking the threads for the sampled bounds and the chunks costs about what a
 # second thread saves (bench.run's grid, 2 threads, best of 200 calls: 1,000
 # rays 1.88 ms against 1.78 serial; 2,000 3.30-3.36 against 3.30; 3,000
 # 4.62-4.68 against 4.71; 4,000 5.38-5.98 against 6.25-6.33).
@@ -227,47 +215,62 @@ ORDERED_SEGMENTS = 1 << 17
 # instead, chunks of 1 << 15 to 1 << 17 segments took 74.5-76.2 ms against
 # 71.4-71.8 for 1 << 19 (same runs as above, otherwise): threads placing
 # neighbouring chunks fault the same huge page at once, each clearing a page
-# of its own. Without huge pages every size took 126.7-128.4 ms (so did the
-# halves: 127.5-128.0).
+# of its own. Without huge pages every size took 126.7-128.4 ms.
 
 
 class BatchKernels(NamedTuple):
     """One method's kernels for the batch paths (``exact.trace_*``, ``cartesian.box_*``).
 
-    ``span``: one thread, appending (``run_serial``); ``halves``: two
-    threads meeting in the middle (``run_halves``); ``ordered``: chunks
+    ``span``: one thread, appending (``run_serial``); ``ordered``: chunks
     placed in order (``run_ordered``). ``bounds(*bound_inputs, out)`` writes
-    an upper bound on each ray's segments (both parallel paths reserve their
+    an upper bound on each ray's segments (the ordered chunks reserve their
     output from a sample of them).
     """
 
     span: object
-    halves: object
     ordered: object
     bounds: object
 
 
 def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, parallel, buffers=None):
-    """Trace in one pass (``run_serial``), two halves (``run_halves``) or ordered chunks.
+    """Trace in one pass (``run_serial``) or in ordered chunks on all threads (``run_ordered``).
 
-    Ordered chunks: ``run_ordered``. All run the same per-ray code, so the
-    outputs are identical. A batch too small to split, or one thread, takes
-    the serial pass; two threads take the halves, which copy only the front
-    half, unless their reservation would not fit in memory or a half ran out
-    of room; more threads, and those cases, take the ordered chunks.
+    Both run the same per-ray code, so the outputs are identical. A batch
+    too small to split, or one thread, takes the serial pass.
+
+    Two threads once had a path of their own, meeting in the middle of the
+    batch; the ordered chunks were as fast in one run (``trace_many`` of
+    ``bench.run``'s 100,000 rays on 2 threads, best of 12: 53.9 ms against
+    55.0 into fresh arrays, 35.8 against 36.7 into reused ones), so it went.
+    A plain design (a bound pass, offsets, each chunk traced into its region
+    of a reused scratch, then copied to the output) took 62.0 ms in the
+    same kind of run, 13% slower than the ordered chunks' 54.6.
     """
     threads = numba.get_num_threads() if parallel else 1
     if threads == 1 or n_rays < PARALLEL_MIN_RAYS:
         return run_serial(kernels.span, span_inputs, n_rays, worst, buffers)
-    if threads == 2:
-        traces = run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers)
-        if traces is not None:
-            return traces
     return run_ordered(kernels, inputs, bound_inputs, n_rays, worst, threads, buffers)
 
 
-EXACT_KERNELS = BatchKernels(_exact.trace_span, _exact.trace_halves, _exact.trace_ordered,
-                             _exact.bound_counts)
+def bound_counts(origins, directions, args, bounds):
+    """Write an upper bound on each ray's segments into ``bounds``: its set-up only.
+
+    A ray never writes more segments than its bound (``exact.segments_bound``),
+    so regions sized by the bounds cannot overflow. Blocks of rays on all
+    threads (``exact.trace_chunks`` with ``BOUND``).
+    """
+    n_rays = origins.shape[0]
+    starts = np.append(np.arange(0, n_rays, BLOCK), n_rays)
+    ends = np.empty(n_rays + 1, dtype=np.int64)
+    _exact.trace_chunks(starts, np.zeros(starts.shape[0], dtype=np.int64), origins, directions,
+                        _NO_T_MAX, args, *_NO_SEGMENTS, ends, _exact.BOUND)
+    bounds[:] = ends[1:]
+
+
+# What the bound pass neither reads nor writes, with the types of the trace's.
+_NO_T_MAX = np.empty(0, dtype=np.float64)
+_NO_SEGMENTS = (np.empty((0, 3), dtype=np.int32), np.empty(0), np.empty(0))
+EXACT_KERNELS = BatchKernels(_exact.trace_span, _exact.trace_ordered, bound_counts)
 
 
 def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
@@ -281,20 +284,10 @@ def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
                      origins.shape[0], int(_exact.max_segments(*grid.shape)), parallel, buffers)
 
 
-# The parallel paths reserve this much more than the sampled bounds promise;
+# The ordered chunks reserve this much more than the sampled bounds promise;
 # the bounds are upper bounds (1.0-1.6x the segments on the benchmark's rays),
 # so the output outgrows its room only when the sample is off by more than this.
 RESERVE_MARGIN = 1.25
-# The front thread copies each block of segments once more (out of its block
-# scratch, with non-temporal stores: ``stream.stream_segments``), and the back
-# thread takes the page faults of fresh output as it writes, so their shares
-# of the bounds' sum are tuned, by the arrays: fresh or held (reused, faulted
-# in already). trace_many on bench.run's 100,000 rays, 2 threads, best of 12
-# calls, alternated in one run on a 2-core AMD EPYC: fresh arrays 0.47
-# 62.4-62.6 ms, 0.485 59.8-60.6, 0.50 61.1-61.4, 0.515 62.4-62.6; held
-# buffers 0.47 54.7-55.1, 0.485 55.8-56.6, 0.50 57.0.
-HALVES_FRONT_SHARE = 0.485
-HALVES_FRONT_SHARE_HELD = 0.47
 # Rays sampled for their bounds, plus one in 512; at most one in 16 (a ray's
 # set-up costs about a quarter of tracing it on bench.run's grid), but 64 at
 # least.
@@ -339,64 +332,6 @@ def _fits_in_memory(length):
         return True
     available = validate.available_memory()
     return available is None or length * SEGMENT_BYTES <= available
-
-
-def run_halves(kernels, inputs, bound_inputs, n_rays, worst, buffers=None):
-    """Two threads that meet in the middle: no pack of the output, no pre-touched pages.
-
-    The front half of the batch is traced by one thread, last ray first, each
-    block of rays traced into a scratch block and copied (non-temporally)
-    just below the rays after it, down from an anchor; the back half by the
-    other thread, in order, up from the anchor. The segments then lie
-    contiguous and in ray order between where the front thread stopped and
-    the back one ended: each written to its final place by the thread that
-    traced it, which also takes its page faults.
-    The result is views of that stretch; the reserved pages outside it are
-    never touched, so they cost address space, not memory.
-
-    Where to split and how much room each half needs come from sampled
-    bounds (``_sampled_bounds``), scaled up and given ``RESERVE_MARGIN`` to
-    spare. ``n_rays`` must be at least 2. Returns None when the reservation
-    would not fit in the available memory (before tracing) or a half ran out
-    of room (after: the caller then traces the batch again in ordered
-    chunks; it takes a sample off by more than the margin).
-    """
-    start = time.perf_counter()
-    strata, bounds = _sampled_bounds(kernels, bound_inputs, n_rays)
-    # The bounds up to each stratum's end, scaled to its rays, with the margin.
-    mass = np.cumsum(bounds * (strata[1:] - strata[:-1])) * RESERVE_MARGIN
-    # The reservation is about the same wherever the cut falls (the room of
-    # both halves, plus a ray's worst at the anchor and the end).
-    held = None if buffers is None else buffers.segments()
-    reuse = held is not None and held[0].shape[0] >= int(mass[-1]) + 2 * worst + 1
-    share = HALVES_FRONT_SHARE_HELD if reuse else HALVES_FRONT_SHARE
-    cut = min(max(int(np.searchsorted(mass, share * mass[-1])), 1), bounds.shape[0] - 1)
-    split = int(strata[cut])
-    anchor = int(mass[cut - 1]) + worst
-    length = anchor + int(mass[-1] - mass[cut - 1]) + worst
-    _check_output(n_rays, float(np.dot(bounds, np.diff(strata))) / n_rays)
-    if not _fits_in_memory(length):
-        return None
-    start = lap("bound", start)
-    offsets = _ray_offsets(n_rays, buffers)
-    if held is not None and held[0].shape[0] >= length:
-        segments = held
-    else:
-        segments = segment_arrays(length)
-        if buffers is not None:
-            buffers.keep(segments)
-    offsets[split] = anchor
-    start = lap("allocate", start)
-    ends, reached = kernels.halves(split, anchor, segments[0].shape[0], *inputs, *segments,
-                                   offsets)
-    start = lap("trace", start)
-    if reached[0] != 0 or reached[1] != n_rays:
-        return None
-    first, end = int(ends[0]), int(ends[1])
-    offsets -= first
-    traces = Traces(offsets, *(a[first:end] for a in segments))
-    lap("other", start)
-    return traces
 
 
 def run_exact_ordered(grid, origins, directions, t_max, workers, buffers=None, touch_ahead=True):
@@ -478,12 +413,23 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
     return _result(offsets, output, used, buffers, start)
 
 
+# Below this many rays ``trace_regions`` runs on one thread, and a first call
+# compiles neither of its parallel kernels (4.3 s of a cold main job's 18.5 s
+# on 2 cores). A gaze's default cone has 200-300 rays (225 for bench.cone's
+# gaze, 303 for the README's). ``fixation_probability`` on bench.cone's gaze,
+# best of 40 calls on 2 threads, one thread against both: 128 rays 0.46 ms
+# against 0.43, 225 rays 0.70 against 0.63, 384 rays 1.04 against 0.86, 512
+# rays 1.32 against 1.05, 1,000 rays 2.29 against 1.61. So a default gaze
+# pays 0.07-0.15 ms a call (10-20%) for the 4 s it saves once.
+CONE_PARALLEL_MIN_RAYS = 512
+
+
 def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays,
                   parallel=True):
     """Trace contiguous chunks of rays, ``starts[c]:starts[c + 1]``, each into its own region.
 
     Each chunk is one ``prange`` iteration and appends to its region; the
-    regions are sized by the rays' bounds (``exact.bound_counts``), so none
+    regions are sized by the rays' bounds (``bound_counts``), so none
     can overflow. ``segment_arrays(n)``
     provides (cells, t_enter, t_exit) with room for at least ``n`` segments.
     Returns ``(starts, regions, ends, offsets, cells, t_enter, t_exit)``:
@@ -491,19 +437,18 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
     ``regions[c]`` to ``ends[c]``, and ray ``r``'s segments are
     ``offsets[r]:offsets[r + 1]`` (gaps between regions).
 
-    Fewer rays than ``PARALLEL_MIN_RAYS`` (a gaze's cone), one thread, or
-    ``parallel=False``: the rays are bounded and traced in order on this
-    thread by ``exact.trace_span``, the regions back to back (no gaps). The
-    chunks are the same, so what is summed per chunk is too; and the first
-    answer compiles neither parallel kernel.
+    Fewer rays than ``CONE_PARALLEL_MIN_RAYS`` (a gaze's cone), one
+    thread, or ``parallel=False``: the rays are bounded and traced in order
+    on this thread by ``exact.trace_span``, the regions back to back (no
+    gaps). The chunks are the same, so what is summed per chunk is too.
     """
     start = time.perf_counter()
     n_rays = origins.shape[0]
-    if not parallel or n_rays < PARALLEL_MIN_RAYS or numba.get_num_threads() == 1:
+    if not parallel or n_rays < CONE_PARALLEL_MIN_RAYS or numba.get_num_threads() == 1:
         return _trace_regions_serial(grid, origins, directions, t_max, args, starts,
                                      segment_arrays, start)
     cumulative = np.zeros(n_rays + 1, dtype=np.int64)
-    _exact.bound_counts(origins, directions, args, cumulative[1:])
+    bound_counts(origins, directions, args, cumulative[1:])
     np.cumsum(cumulative, out=cumulative)
     regions = cumulative[starts]
     validate.fits("n_rays", int(regions[-1]) * SEGMENT_BYTES + 16 * n_rays,
@@ -513,7 +458,7 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
     offsets[0] = 0
     start = lap("bound", start)
     ends = _exact.trace_chunks(starts, regions, origins, directions, t_max, args, cells, t_enter,
-                               t_exit, offsets)
+                               t_exit, offsets, _exact.TRACE)
     lap("trace", start)
     return starts, regions, ends, offsets, cells, t_enter, t_exit
 
@@ -527,9 +472,8 @@ def _trace_regions_serial(grid, origins, directions, t_max, args, starts, segmen
     lookups = np.empty(8, dtype=np.int64)
     offsets = np.empty(n_rays + 1, dtype=np.int64)
     offsets[0] = 0
-    no_segments = (np.empty((0, 3), dtype=np.int32), np.empty(0), np.empty(0))
     _exact.trace_span(0, n_rays, origins, directions, t_max, args, times, zones, lookups,
-                      _exact.BOUND, *no_segments, offsets, 0, np.iinfo(np.int64).max)
+                      _exact.BOUND, *_NO_SEGMENTS, offsets, 0, np.iinfo(np.int64).max)
     total = int(offsets[1:].sum()) + int(_exact.max_segments(*grid.shape))
     validate.fits("n_rays", total * SEGMENT_BYTES + 16 * n_rays,
                   f"tracing {n_rays:,} rays of cones (at most {total:,} segments)")

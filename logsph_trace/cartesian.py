@@ -9,7 +9,7 @@ from ._batching import BatchKernels, lap, run_batch
 from .kernels import cartesian as _kernels
 from .traces import Traces
 
-BOX_KERNELS = BatchKernels(_kernels.box_span, _kernels.box_halves, _kernels.box_ordered,
+BOX_KERNELS = BatchKernels(_kernels.box_span, _kernels.box_ordered,
                            _kernels.box_bounds)
 
 

@@ -135,9 +135,9 @@ class TraceBuffers:
     allocation and for the first touch of every page (on the 2-core test
     machine 11-12% of a one-thread call: ``python -m bench.run``). Buffers
     keep the arrays, and their pages, from call to call: they grow when a
-    batch needs more and never shrink. On two threads a batch needs the
-    room its halves reserve (upper bounds on its segments, with a margin:
-    about 1.9x the output for random rays), not just its output.
+    batch needs more and never shrink. On two threads or more a batch needs
+    the room its ordered chunks reserve (sampled upper bounds on its
+    segments, with a margin), not just its output.
 
     The :class:`Traces` a call returns are views into these arrays, valid
     until the next call that uses the same buffers: copy what you keep.

@@ -17,17 +17,8 @@ def assert_same(result, want):
         np.testing.assert_array_equal(getattr(result, name), getattr(want, name))
 
 
-def _halves(grid, origins, directions, buffers):
-    """The two-thread path into ``buffers``, on any machine."""
-    o, d = _validate.rays(origins, directions)
-    args = grid.kernel_args()
-    return _batching.run_halves(_batching.EXACT_KERNELS, (o, d, np.full(len(o), np.inf), args),
-                                (o, d, args), len(o), int(_exact.max_segments(*grid.shape)),
-                                buffers)
-
-
 def _ordered(grid, origins, directions, buffers):
-    """The path of three threads or more into ``buffers``, on any machine."""
+    """The path of two threads or more into ``buffers``, on any machine (three workers)."""
     o, d = _validate.rays(origins, directions)
     args = grid.kernel_args()
     return _batching.run_ordered(_batching.EXACT_KERNELS, (o, d, np.full(len(o), np.inf), args),
@@ -35,7 +26,7 @@ def _ordered(grid, origins, directions, buffers):
                                  buffers)
 
 
-@pytest.mark.parametrize("path", ["serial", "parallel", "halves", "ordered"])
+@pytest.mark.parametrize("path", ["serial", "parallel", "ordered"])
 def test_reused_buffers_give_the_fresh_result_on_every_call(monkeypatch, path):
     # Batches of growing and shrinking sizes through one set of buffers: the
     # first call finds them empty, later ones too small (they grow) or big
@@ -52,9 +43,7 @@ def test_reused_buffers_give_the_fresh_result_on_every_call(monkeypatch, path):
     batches = [random_rays(rng, grid, n) for n in (700, 3000, 40, 1200)]
     for origins, directions in batches + batches[1:2]:
         want = lt.trace_many(grid, origins, directions, parallel=False)
-        if path == "halves":
-            got = _halves(grid, origins, directions, buffers)
-        elif path == "ordered":
+        if path == "ordered":
             got = _ordered(grid, origins, directions, buffers)
         else:
             got = lt.trace_many(grid, origins, directions, parallel=path == "parallel",

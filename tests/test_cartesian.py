@@ -36,9 +36,9 @@ def test_bad_box():
 
 
 @pytest.mark.parametrize("chunk_segments, margin", [(1 << 18, 1.25), (50, 0.05)])
-def test_parallel_chunks_and_halves_equal_the_serial_pass(monkeypatch, chunk_segments, margin):
+def test_parallel_chunks_equal_the_serial_pass(monkeypatch, chunk_segments, margin):
     # The baseline batches like the exact method: one appending pass on one
-    # thread, two halves on two, ordered chunks on more. With 50 segments a
+    # thread, ordered chunks on more. With 50 segments a
     # chunk is one ray, and with 5% of the bounds reserved the output grows
     # many times.
     import numba
@@ -63,15 +63,11 @@ def test_parallel_chunks_and_halves_equal_the_serial_pass(monkeypatch, chunk_seg
     o, d = _validate.rays(origins, directions)
     inputs = (o, d, box.low, box.voxel_size, box._shape)
     ordered = _batching.run_ordered(BOX_KERNELS, inputs, inputs, len(o), sum(box.shape), 5)
-    # The two-thread path, on any machine (tests/test_halves.py for the exact
-    # method); with the small margin it runs out of room and says so.
-    halves = _batching.run_halves(BOX_KERNELS, inputs, inputs, len(o), sum(box.shape))
     assert serial.cells.shape[0] > 5 * len(origins)
-    for result in results + [ordered] + ([halves] if margin > 1 else []):
+    for result in results + [ordered]:
         for name in ("offsets", "cells", "t_enter", "t_exit"):
             np.testing.assert_array_equal(getattr(result, name), getattr(serial, name))
             assert getattr(ordered, name).base is None  # it owns exactly its data
-    assert (halves is None) == (margin < 1)
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 1), (7, 8, 9), (32, 32, 32)])

@@ -11,7 +11,7 @@ from conftest import GRIDS, TANGENT_SLIVER, assert_matches_oracle
 from singular import CLASSES, singular_rays
 
 import logsph_trace as lt
-from logsph_trace import _validate
+from logsph_trace import _batching, _validate
 from logsph_trace.kernels import exact, locate
 
 
@@ -198,7 +198,7 @@ def test_segment_count_respects_the_loop_bound():
 @pytest.mark.parametrize("name", sorted(GRIDS))
 def test_the_bound_pass_is_never_below_a_rays_segments(name):
     # The parallel paths and the GPU size each ray's region by its bound
-    # (exact.bound_counts on the CPU, exact.ray_bound on the GPU): one below
+    # (_batching.bound_counts on the CPU, exact.ray_bound on the GPU): one below
     # the segments would overwrite the next ray. Random rays, near-singular
     # ones, rays from the centre and the y axis along the edges' directions,
     # and rays stopped at a random t_max.
@@ -215,7 +215,7 @@ def test_the_bound_pass_is_never_below_a_rays_segments(name):
     origins, directions = _validate.rays(np.concatenate([s[0] for s in sets]),
                                          np.concatenate([s[1] for s in sets]))
     bounds = np.empty(len(origins), dtype=np.int64)
-    exact.bound_counts(origins, directions, grid.kernel_args(), bounds)
+    _batching.bound_counts(origins, directions, grid.kernel_args(), bounds)
     t_max = rng.uniform(0.0, 2.5, len(origins)) * grid.rho_max
     for stop in (None, t_max):
         counts = lt.trace_many(grid, origins, directions, t_max=stop, parallel=False).counts

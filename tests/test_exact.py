@@ -272,7 +272,7 @@ def test_every_parallel_path_equals_the_serial_one(monkeypatch, chunk_segments, 
         for name in ("offsets", "cells", "t_enter", "t_exit"):
             np.testing.assert_array_equal(getattr(result, name), getattr(want, name))
             # The ordered path's arrays own exactly their data: no spare room kept
-            # alive (two threads take the halves instead: tests/test_halves.py).
+            # alive.
             assert result is results[0] or getattr(result, name).base is None
 
 

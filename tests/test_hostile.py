@@ -285,7 +285,7 @@ def test_a_batch_that_cannot_fit_fails_before_it_is_traced(monkeypatch, parallel
     traced = []  # the parallel paths' kernels must not run
     kernels = _batching.EXACT_KERNELS
     monkeypatch.setattr(_batching, "EXACT_KERNELS", kernels._replace(
-        halves=lambda *a: traced.append("halves"), ordered=lambda *a: traced.append("ordered")))
+        ordered=lambda *a: traced.append("ordered")))
     with pytest.raises(MemoryError, match=r"origins: tracing 200,000 rays \(about [\d,]+ "
                                           r"segments\) needs about"):
         lt.trace_many(grid, rays, parallel=parallel)
@@ -302,7 +302,7 @@ def test_cones_that_cannot_fit_fail_before_they_are_traced(monkeypatch):
     rng = np.random.default_rng(1)
     _no_memory(monkeypatch, 60 * 2**20)
     monkeypatch.setattr(_batching, "EXACT_KERNELS", _batching.EXACT_KERNELS._replace(
-        halves=None, ordered=None))
+        ordered=None))
     with pytest.raises(MemoryError, match="needs about"):
         lt.trace_cones(grid, rng.normal(size=(20, 3)), rng.normal(size=(20, 3)), 0.1,
                        n_rays=20_000)

@@ -4,9 +4,9 @@ A copy is split into plain stores up to the first 32-byte aligned target,
 aligned vector stores, and plain stores after the last whole vector. Every
 split is exercised here: each alignment of source and target, and counts
 from 0 to past several vectors. Elements outside the target range must keep
-their sentinel values. The batch paths that use these copies (the halves'
-front blocks and the ordered chunks' placing) are checked against the serial
-trace in ``test_halves.py``, ``test_exact.py`` and ``test_safety.py``.
+their sentinel values. The batch path that uses these copies (the ordered
+chunks' placing) is checked against the serial trace in
+``test_two_threads.py``, ``test_exact.py`` and ``test_safety.py``.
 """
 
 import os

@@ -2,8 +2,7 @@
 
 Written in the same style as the exact log-spherical kernel (scalar state,
 the same segment output, the same batching: one appending pass on one
-thread, two halves on two, chunks placed in order on more) so timings
-compare like for like.
+thread, chunks placed in order on more) so timings compare like for like.
 """
 
 import math
@@ -12,7 +11,6 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .exact import BACK_BLOCK_SEGMENTS, place_block
 from .ordered import advance, buffer_of, chain, post, rows_of, take
 
 
@@ -151,51 +149,6 @@ def box_bounds(origins, directions, low, size, shape, bounds):
     """``box_bound`` of every ray, into ``bounds`` (``exact.bound_counts``'s contract)."""
     for row in prange(origins.shape[0]):
         bounds[row] = box_bound(origins, directions, row, low, size, shape)
-
-
-@jit
-def box_span_back(first, last, origins, directions, low, size, shape, block_cells, block_enter,
-                  block_exit, cells, t_enter, t_exit, offsets, top, floor):
-    """One thread: rays first..last-1 placed down from ``top`` in blocks
-    (``exact.trace_span_back``'s contract)."""
-    worst = box_max_segments(shape)
-    rays = block_enter.shape[0] // worst
-    end = last
-    while end > first:
-        begin = max(first, end - min(rays, (top - floor) // worst))
-        if begin == end:
-            return top, end
-        # ``begin - begin``, not a literal 0 (``exact.trace_span_back``).
-        count, _ = box_span(begin, end, origins, directions, low, size, shape, block_cells,
-                            block_enter, block_exit, offsets, begin - begin,
-                            block_enter.shape[0])
-        top = place_block(block_cells, block_enter, block_exit, count, cells, t_enter, t_exit,
-                          offsets, begin, end, top)
-        end = begin
-    return top, first
-
-
-@jit(parallel=True)
-def box_halves(split, anchor, limit, origins, directions, low, size, shape, cells, t_enter,
-               t_exit, offsets):
-    """Two threads meeting at ``anchor`` (``exact.trace_halves``'s contract)."""
-    worst = box_max_segments(shape)
-    ends = np.empty(2, dtype=np.int64)
-    reached = np.empty(2, dtype=np.int64)
-    for half in prange(2):
-        if half == 0:
-            block = max(1, BACK_BLOCK_SEGMENTS // worst) * worst
-            ends[0], reached[0] = box_span_back(
-                0, split, origins, directions, low, size, shape,
-                np.empty((block, 3), dtype=np.int32), np.empty(block, dtype=np.float64),
-                np.empty(block, dtype=np.float64), cells, t_enter, t_exit, offsets, anchor, 0,
-            )
-        else:
-            ends[1], reached[1] = box_span(
-                split, origins.shape[0], origins, directions, low, size, shape, cells, t_enter,
-                t_exit, offsets, anchor, limit,
-            )
-    return ends, reached
 
 
 @jit(parallel=True)

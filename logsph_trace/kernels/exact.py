@@ -32,14 +32,12 @@ Every loop runs over a count fixed beforehand, at most ``scratch_size``.
 """
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 from numba import prange
 
 from .._jit import jit
 from .locate import (
-    BLOCK,
     CONE_BLOCK,
     TWO_PI,
     azimuth,
@@ -50,7 +48,6 @@ from .locate import (
     theta_zone_rough,
 )
 from .ordered import advance, buffer_of, chain, post, rows_of, take
-from .stream import stream_segments
 
 # The spacing of float64 at 1 (2^-52).
 EPSILON = 2.220446049250313e-16
@@ -603,26 +600,6 @@ def _reverse(row, first, count):
         row[first + count - 1 - k] = a
 
 
-class Line(NamedTuple):
-    """A ray's line about its closest point to the centre, as the cone crossings need it.
-
-    ``t_closest`` and the closest point ``c`` (``line_geometry``), the unit
-    direction ``d``, and the x-z dot products ``cab`` = C.B, ``ca2`` =
-    |C|^2, ``b2`` = |B|^2 of C = (c_x, c_z) and B = (d_x, d_z).
-    """
-
-    t_closest: float
-    cx: float
-    cy: float
-    cz: float
-    dx: float
-    dy: float
-    dz: float
-    cab: float
-    ca2: float
-    b2: float
-
-
 # ``_branch_times``'s ``first_branch`` and its first ``n_p``: NumPy scalars,
 # not literals, so that both calls of each ray share one compiled function (a
 # literal argument gets a signature of its own: about 1.3 s more, cold).
@@ -632,16 +609,19 @@ NO_CROSSINGS = np.int64(0)
 
 
 @jit
-def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_start, grid,
-                  line, t_final, slack, times, zones):
+def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_start, phi_tan2,
+                  phi_nappe, lanes, flat_from, flat_to, t_closest, cx, cy, cz, dx, dy, dz, cab,
+                  ca2, b2, t_final, slack, times, zones):
     """The ``steps`` cone crossings of one monotone branch of phi, from ``zone`` in
     direction ``sigma``, clamped into ``[t_prev, t_high]``, appended to row
     ``PHI`` after its first ``n_p``; stops at the first past ``t_final``.
 
     A function of its own, not inlined: each ray calls it twice, and
-    inlining both calls cost 3.2 s more to compile ``trace_span`` and
-    nothing measurable at run time (``python -m bench.ab HEAD~ --threads 1``
-    on the commit that made it a call: 1.005, within the probe's noise).
+    inlining both calls cost 3.2 s more to compile ``trace_span``. As a call
+    (``python -m bench.ab REV --threads 1`` against the inlined commit), the
+    trace took 1.005x and 1.026x in two runs. With its arguments bundled
+    into named tuples (the line, the cones) it took 1.040x, so they stay
+    apart.
 
     A branch's crossings past the ray's exit are never used, so
     ``_cone_times`` times the cones ``CONE_BLOCK`` at a time, in the order
@@ -651,10 +631,6 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
     at least ``lanes`` cones (see ``phi_times``). Returns (``n_p``,
     ``t_prev``, ``zone``, whether a crossing past ``t_final`` ended the list).
     """
-    phi_tan2 = grid.phi_tan2
-    phi_nappe = grid.phi_nappe
-    lanes = phi_tan2.shape[0] - grid.phi_edges.shape[0] + 1
-    t_closest, cx, cy, cz, dx, dy, dz, cab, ca2, b2 = line
     row = times[PHI]
     step = 0
     t_run = t_prev
@@ -665,7 +641,7 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
         low = zone + 1 if sigma > 0 else zone - count + 1
         _cone_times(low, max(count, lanes), phi_tan2, phi_nappe, row, n_p + 1, t_closest, cy, dy,
                     cab, ca2, b2, first_branch, branch_start, slack)
-        if low < grid.phi_flat_to and grid.phi_flat_from < low + count:  # all but flat
+        if low < flat_to and flat_from < low + count:  # a cone all but flat in this block
             _flat_cone_times(low, count, phi_tan2, phi_nappe, row, n_p + 1, t_closest, cx, cy,
                              cz, dx, dy, dz, cab, ca2, b2, first_branch, branch_start, slack)
         if sigma < 0:
@@ -703,11 +679,16 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
     scalar code. Unpadded (the GPU's), a block times only the cones it needs.
     """
     inf = np.inf
-    line = Line(t_closest, cx, cy, cz, dx, dy, dz, cx * dx + cz * dz, cx * cx + cz * cz,
-                dx * dx + dz * dz)
+    phi_tan2 = grid.phi_tan2
+    phi_nappe = grid.phi_nappe
+    lanes = phi_tan2.shape[0] - grid.phi_edges.shape[0] + 1
+    b2 = dx * dx + dz * dz
+    cab = cx * dx + cz * dz
+    ca2 = cx * cx + cz * cz
     n_p, t_prev, zone, done = _branch_times(
         kp, 1 if ph2_start > kp else -1, ph1_steps, t_start, t_turn, NO_CROSSINGS, FIRST_BRANCH,
-        t_start, grid, line, t_final, slack, times, zones,
+        t_start, phi_tan2, phi_nappe, lanes, grid.phi_flat_from, grid.phi_flat_to, t_closest, cx,
+        cy, cz, dx, dy, dz, cab, ca2, b2, t_final, slack, times, zones,
     )
     if ph_jump == 1:
         _, t_prev = _clamp(t_turn, t_prev, inf)
@@ -721,7 +702,9 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
     if not done:
         n_p, _, _, _ = _branch_times(
             zone, 1 if kp_limit > zone else -1, ph2_steps, t_prev, inf, n_p, SECOND_BRANCH,
-            t_turn if t_turn < inf else t_start, grid, line, t_final, slack, times, zones,
+            t_turn if t_turn < inf else t_start, phi_tan2, phi_nappe, lanes, grid.phi_flat_from,
+            grid.phi_flat_to, t_closest, cx, cy, cz, dx, dy, dz, cab, ca2, b2, t_final, slack,
+            times, zones,
         )
     return n_p
 
@@ -805,7 +788,7 @@ def ray_bound(origins, directions, row, grid, per_log, lookups):
 
     ``segments_bound`` of one ray, for a GPU thread: the GPU's bound kernel
     runs this light function rather than all of ``trace_span`` (the CPU's
-    ``bound_counts`` does the opposite, to compile the set-up once).
+    bound pass does the opposite, to compile the set-up once).
     ``per_log`` as in ``ray_start``, ``lookups`` as in ``trace_span``.
     """
     n_rho = grid.rho_edges.shape[0] - 1
@@ -853,7 +836,7 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
     only its set-up, and ``offsets[row + 1]`` its bound on its segments
     (``segments_bound``); ``t_max``, the scratch and the segment arrays are
     not read or written, so they may be empty. The bound pass of the
-    parallel paths (``bound_counts``) runs this way, so the set-up is
+    parallel paths (``trace_chunks``) runs this way, so the set-up is
     compiled once on the CPU, not again in a function of its own.
 
     Per ray, phases: (1) per family, the zone at each branch end and so the
@@ -1017,144 +1000,17 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
 # appending (``trace_span``). Each ray writes only its own slice or region, so
 # the output does not depend on the number of threads.
 @jit(parallel=True)
-def bound_counts(origins, directions, grid, bounds):
-    """An upper bound on each ray's segments, into ``bounds``: its set-up only, no stepping.
-
-    A ray never writes more segments than its bound (``segments_bound``), so
-    regions sized by the bounds cannot overflow. Blocks of rays go through
-    ``trace_span`` with ``BOUND``.
-    """
-    n_rays = origins.shape[0]
-    no_limit = np.iinfo(np.int64).max
-    ends = np.empty(n_rays + 1, dtype=np.int64)  # trace_span's offsets: ends[row + 1]
-    # What BOUND neither reads nor writes, empty and shared by every block;
-    # each of its arguments has the type of the serial call's, so that it is
-    # the same compiled trace_span.
-    no_t_max = np.empty(0, dtype=np.float64)
-    no_times = np.empty((3, 0), dtype=np.float64)
-    no_zones = np.empty((3, 0), dtype=np.int64)
-    no_cells = np.empty((0, 3), dtype=np.int32)
-    no_enter = np.empty(0, dtype=np.float64)
-    no_exit = np.empty(0, dtype=np.float64)
-    for block in prange((n_rays + BLOCK - 1) // BLOCK):
-        first = block * BLOCK
-        last = min(n_rays, first + BLOCK)
-        # ``first - first``, not a literal 0 (see TRACE).
-        trace_span(first, last, origins, directions, no_t_max, grid, no_times, no_zones,
-                   np.empty(8, dtype=np.int64), BOUND, no_cells, no_enter, no_exit, ends,
-                   first - first, no_limit)
-        for row in range(first, last):
-            bounds[row] = ends[row + 1]
-
-
-# The front half of ``trace_halves`` traces this many segments' worth of rays
-# (at ``max_segments`` each) at a time into a scratch block before copying them
-# below the rays after them: one copy of a few dozen rays runs several times
-# faster than one per ray, whose stores step down through memory.
-BACK_BLOCK_SEGMENTS = 1 << 15
-
-
-@jit
-def trace_span_back(first, last, origins, directions, t_max, grid, times, zones, lookups,
-                    block_cells, block_enter, block_exit, cells, t_enter, t_exit, offsets, top,
-                    floor):
-    """One thread: trace rays first..last-1 placed down from ``top``, the last ray highest.
-
-    ``trace_span`` mirrored, for the front half of a batch that meets the back
-    half at ``top`` (``trace_halves``). Rays go in blocks, from the last block
-    down; a block's rays are traced in order into the block scratch (room for
-    ``max_segments`` each) and copied to end where the block after it starts.
-    ``offsets[row]`` gets where ray ``row`` starts (``offsets[last]`` must be
-    ``top``). Stops before a block that might not fit above ``floor``; returns
-    (new ``top``, ``reached``: rows first..reached-1 were not traced).
-    """
-    worst = max_segments(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
-                         grid.phi_edges.shape[0] - 1)
-    rays = block_enter.shape[0] // worst
-    end = last
-    while end > first:
-        begin = max(first, end - min(rays, (top - floor) // worst))
-        if begin == end:
-            return top, end
-        # ``begin - begin``, not a literal 0: a literal would compile trace_span
-        # once more, specialised on it (about 4 s cold).
-        count, _ = trace_span(begin, end, origins, directions, t_max, grid, times, zones, lookups,
-                              TRACE, block_cells, block_enter, block_exit, offsets, begin - begin,
-                              block_enter.shape[0])
-        top = place_block(block_cells, block_enter, block_exit, count, cells, t_enter, t_exit,
-                          offsets, begin, end, top)
-        end = begin
-    return top, first
-
-
-@jit(inline="always")
-def place_block(block_cells, block_enter, block_exit, count, cells, t_enter, t_exit, offsets,
-                begin, end, top):
-    """Copy a block's ``count`` segments to end at ``top``; return where they start.
-
-    Rays begin..end-1 were traced into the block by a ``*_span``, which wrote
-    ``offsets[begin + 1:end + 1]`` as ends within the block; they become
-    positions in the arrays (``offsets[end]`` becomes ``top`` again), and
-    ``offsets[begin]`` gets the block's start.
-    """
-    start = top - count
-    stream_segments(block_cells, block_enter, block_exit, 0, count, cells, t_enter, t_exit, start)
-    offsets[begin] = 0
-    for row in range(begin, end + 1):
-        offsets[row] += start
-    return start
-
-
-@jit(parallel=True)
-def trace_halves(split, anchor, limit, origins, directions, t_max, grid, cells, t_enter, t_exit,
-                 offsets):
-    """Two threads that write every segment to its final place, none packed afterwards.
-
-    Rays ``split - 1`` down to 0 are placed below ``anchor`` (``trace_span_back``,
-    through a block scratch, down to row 0 of the arrays), rays ``split`` on
-    from ``anchor`` up to ``limit`` (``trace_span``, straight into the
-    arrays); the two halves meet at ``anchor``, so the batch's segments end
-    up contiguous, in ray order, between where the front half stopped and
-    the back half ended (``_batching.run_halves``).
-    ``offsets`` holds positions in the arrays: ``offsets[split]`` must be
-    ``anchor``. Returns ([start of the segments, end of them], [rows
-    0..reached[0]-1 not traced, first row not traced]): every row is traced
-    when ``reached`` is ``[0, n_rays]``.
-    """
-    n_rays = origins.shape[0]
-    size = grid_scratch_size(grid)
-    worst = max_segments(grid.rho_edges.shape[0] - 1, grid.theta_edges.shape[0] - 1,
-                         grid.phi_edges.shape[0] - 1)
-    ends = np.empty(2, dtype=np.int64)
-    reached = np.empty(2, dtype=np.int64)
-    for half in prange(2):
-        times = np.empty((3, size), dtype=np.float64)
-        zones = np.empty((3, size), dtype=np.int64)
-        lookups = np.empty(8, dtype=np.int64)
-        if half == 0:
-            block = max(1, BACK_BLOCK_SEGMENTS // worst) * worst
-            ends[0], reached[0] = trace_span_back(
-                0, split, origins, directions, t_max, grid, times, zones, lookups,
-                np.empty((block, 3), dtype=np.int32), np.empty(block, dtype=np.float64),
-                np.empty(block, dtype=np.float64), cells, t_enter, t_exit, offsets, anchor, 0,
-            )
-        else:
-            ends[1], reached[1] = trace_span(
-                split, n_rays, origins, directions, t_max, grid, times, zones, lookups, TRACE,
-                cells, t_enter, t_exit, offsets, anchor, limit,
-            )
-    return ends, reached
-
-
-@jit(parallel=True)
 def trace_chunks(starts, regions, origins, directions, t_max, grid, cells, t_enter, t_exit,
-                 offsets):
+                 offsets, bounds_only):
     """Chunk c traces rays starts[c]..starts[c+1]-1 into its region, from regions[c] on.
 
-    The regions must be sized by ``bound_counts``: no ray writes past its
+    The regions must be sized by the rays' bounds: no ray writes past its
     bound, so none is checked. Returns per chunk the end of its segments;
     ``offsets[row + 1]`` gets the end of ray ``row``'s segments (positions in
-    the regions).
+    the regions). With ``bounds_only`` (``BOUND``) the same loop is the
+    bound pass: ``offsets[row + 1]`` gets ray ``row``'s bound on its
+    segments (``trace_span``), and nothing else is written -- one parallel
+    kernel to compile for both passes, not two.
     """
     n_chunks = starts.shape[0] - 1
     size = grid_scratch_size(grid)
@@ -1166,7 +1022,7 @@ def trace_chunks(starts, regions, origins, directions, t_max, grid, cells, t_ent
         lookups = np.empty(8, dtype=np.int64)
         ends[chunk], _ = trace_span(
             starts[chunk], starts[chunk + 1], origins, directions, t_max, grid, times, zones,
-            lookups, TRACE, cells, t_enter, t_exit, offsets, regions[chunk], no_limit,
+            lookups, bounds_only, cells, t_enter, t_exit, offsets, regions[chunk], no_limit,
         )
     return ends
 

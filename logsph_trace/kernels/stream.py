@@ -1,9 +1,8 @@
 """Copies that bypass the cache, for output written once and read later.
 
-The batch paths that cannot write a segment straight to its final place
-trace into a small scratch and copy it there afterwards: the front half of
-``exact.trace_halves`` (its blocks) and the ordered chunks
-(``ordered.place``). An ordinary store to memory that is not in the
+The ordered chunks (``ordered.place``) cannot write a segment straight to
+its final place: they trace into a small scratch and copy it there
+afterwards. An ordinary store to memory that is not in the
 cache first reads the line it writes into (a read for ownership), so such a
 copy moves each target byte between memory and the cache twice. A
 non-temporal store writes the line without reading it, and leaves the cache

@@ -1,11 +1,9 @@
-"""Two threads meeting in the middle (``_batching.run_halves``): the two-thread batch path.
+"""The batch path of two threads: ordered chunks on two workers (``_batching.run_ordered``).
 
-The front half of a batch is placed block by block below an anchor, the back
-half above it, each segment written once to its final place. Every test
-compares with the serial pass bit for bit. ``run_halves`` is called directly,
-so the tests do not depend on the machine's core count (its ``prange`` of two
-runs on one thread too); the last ones go through ``trace_many`` with two
-threads where the machine has them.
+Every test compares with the serial pass bit for bit. The chunks are run on
+two workers directly, so the tests do not depend on the machine's core count
+(two workers run on one thread too); the last ones go through
+``trace_many`` with two threads where the machine has them.
 """
 
 import numba
@@ -15,9 +13,7 @@ from conftest import GRIDS, random_rays
 from singular import CLASSES, singular_rays
 
 import logsph_trace as lt
-from bench.parallel_memory import reset_peak, status
 from logsph_trace import _batching, _validate
-from logsph_trace.kernels import exact as _exact
 
 FIELDS = ("offsets", "cells", "t_enter", "t_exit")
 
@@ -27,80 +23,75 @@ def assert_same(result, want):
         np.testing.assert_array_equal(getattr(result, name), getattr(want, name))
 
 
-def exact_halves(grid, origins, directions, t_max=None, buffers=None):
-    """``run_halves`` of the exact method, inputs checked as ``trace_many`` checks them."""
+def two_workers(grid, origins, directions, t_max=None, buffers=None):
+    """Ordered chunks of the exact method on two workers, inputs checked as ``trace_many`` does."""
     o, d = _validate.rays(origins, directions)
     t_max = _validate.distances(t_max, len(o))
-    args = grid.kernel_args()
-    return _batching.run_halves(_batching.EXACT_KERNELS, (o, d, t_max, args), (o, d, args),
-                                len(o), int(_exact.max_segments(*grid.shape)), buffers)
+    return _batching.run_exact_ordered(grid, o, d, t_max, 2, buffers)
 
 
 @pytest.mark.parametrize("name", sorted(GRIDS))
 @pytest.mark.parametrize("cut", [False, True])
-def test_halves_equal_the_serial_pass_on_every_grid(name, cut):
+def test_two_workers_equal_the_serial_pass_on_every_grid(name, cut):
     # Rays from inside, the gap and outside (a quarter miss the region); with
     # t_max anywhere along them, or to the end. The grids range from one
-    # sector (a ray's worst case is a few segments, so a front block holds
+    # sector (a ray's worst case is a few segments, so a chunk holds
     # thousands of rays) to the paper's (hundreds).
     grid = GRIDS[name]()
     rng = np.random.default_rng(sorted(GRIDS).index(name) + 100 * cut)
     origins, directions = random_rays(rng, grid, 3000)
     t_max = rng.uniform(0.0, 2.5 * grid.rho_max, len(origins)) if cut else None
     want = lt.trace_many(grid, origins, directions, parallel=False, t_max=t_max)
-    got = exact_halves(grid, origins, directions, t_max)
-    assert got is not None
+    got = two_workers(grid, origins, directions, t_max)
     assert_same(got, want)
     assert got.offsets[0] == 0 and got.cells.flags.c_contiguous
 
 
 @pytest.mark.parametrize("kind", CLASSES)
-def test_halves_equal_the_serial_pass_on_near_singular_rays(kind):
+def test_two_workers_equal_the_serial_pass_on_near_singular_rays(kind):
     # Rays through or a hair (1e-15 .. 1e-3 of the scene) beside the centre,
     # the y axis, tangents and corners, from random eyes, in one batch each.
     grid = GRIDS["log_full"]()
     rng = np.random.default_rng(CLASSES.index(kind) + 77)
     origins, directions, _ = singular_rays(rng, grid, kind, 100)
     want = lt.trace_many(grid, origins, directions, parallel=False)
-    assert_same(exact_halves(grid, origins, directions), want)
+    assert_same(two_workers(grid, origins, directions), want)
 
 
-def test_halves_with_rays_that_miss_at_either_end():
-    # No segments at all for the first and the last third: the split and the
-    # anchor come from bounds that are zero there.
+def test_two_workers_with_rays_that_miss_at_either_end():
+    # No segments at all for the first and the last third: the sampled
+    # bounds are zero there.
     grid = GRIDS["thin_shell"]()
     rng = np.random.default_rng(3)
     origins, directions = random_rays(rng, grid, 3000)
     origins[:1000] = origins[2000:] = [0.0, 0.0, 50.0]
     directions[:1000] = directions[2000:] = [0.0, 0.0, 1.0]
     want = lt.trace_many(grid, origins, directions, parallel=False)
-    assert_same(exact_halves(grid, origins, directions), want)
+    assert_same(two_workers(grid, origins, directions), want)
     origins[:] = [0.0, 0.0, 50.0]
     directions[:] = [0.0, 0.0, 1.0]
-    nothing = exact_halves(grid, origins, directions)
+    nothing = two_workers(grid, origins, directions)
     assert nothing.cells.shape == (0, 3) and np.all(nothing.offsets == 0)
 
 
 @pytest.mark.parametrize("n_rays", [2, 3, 17, 600])
-def test_halves_of_small_batches(n_rays):
+def test_two_workers_on_small_batches(n_rays):
     grid = GRIDS["paper_dm"]()
     origins, directions = random_rays(np.random.default_rng(n_rays), grid, n_rays)
     want = lt.trace_many(grid, origins, directions, parallel=False)
-    assert_same(exact_halves(grid, origins, directions), want)
+    assert_same(two_workers(grid, origins, directions), want)
 
 
 @pytest.mark.parametrize("margin", [0.05, 0.6])
-def test_a_half_that_runs_out_of_room_hands_the_batch_on(monkeypatch, margin):
-    # With the sampled bounds scaled far down, the front half (0.05: both)
-    # runs out of room: each stops before a block or ray that might not fit,
-    # run_halves says so (None), and trace_many's two-thread path traces the
-    # batch again in ordered chunks (whose output, reserved with the same
-    # margin, grows).
+def test_an_output_reserved_too_small_grows(monkeypatch, margin):
+    # With the sampled bounds scaled far down the reservation is too small:
+    # the rows placed so far stay, the output grows, and the rest is traced
+    # again, on two workers and through trace_many's two threads.
     grid = GRIDS["log_full"]()
     origins, directions = random_rays(np.random.default_rng(12), grid, 4000)
     want = lt.trace_many(grid, origins, directions, parallel=False)
     monkeypatch.setattr(_batching, "RESERVE_MARGIN", margin)
-    assert exact_halves(grid, origins, directions) is None
+    assert_same(two_workers(grid, origins, directions), want)
     monkeypatch.setattr(numba, "get_num_threads", lambda: 2)
     assert_same(lt.trace_many(grid, origins, directions, parallel=True), want)
 
@@ -118,24 +109,24 @@ def test_a_reservation_that_does_not_fit_in_memory_is_not_made(monkeypatch):
     # Not even the bounds' estimate fits: a MemoryError before any tracing.
     monkeypatch.setattr(_validate, "available_memory", lambda: 10_000)
     with pytest.raises(MemoryError, match="origins: tracing 2,000 rays"):
-        exact_halves(grid, origins, directions)
+        two_workers(grid, origins, directions)
     with pytest.raises(MemoryError, match="origins: tracing 2,000 rays"):
         lt.trace_many(grid, origins, directions, parallel=True)
-    # The estimate fits, the reservation with its margin does not: no halves;
-    # the ordered chunks reserve what there is, which holds the output.
+    # The estimate fits, the reservation with its margin does not: the
+    # ordered chunks reserve what there is, which holds the output.
     strata, bounds = _batching._sampled_bounds(
         _batching.EXACT_KERNELS, (*_validate.rays(origins, directions), grid.kernel_args()),
         2000)
     estimate = float(np.dot(bounds, np.diff(strata))) * _batching.SEGMENT_BYTES + 8 * 2000
     monkeypatch.setattr(_validate, "available_memory", lambda: int(1.05 * estimate))
-    assert exact_halves(grid, origins, directions) is None
+    assert_same(two_workers(grid, origins, directions), want)
     assert_same(lt.trace_many(grid, origins, directions, parallel=True), want)
 
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two threads")
-def test_trace_many_on_two_threads_takes_the_halves():
-    # The public path: with two threads a batch of rays is split in two
-    # halves; the result views the reservation they were written into.
+def test_trace_many_on_two_threads_takes_the_ordered_chunks():
+    # The public path: with two threads a batch of rays is traced in ordered
+    # chunks, its output reserved from sampled bounds and shrunk to size.
     grid = GRIDS["log_full"]()
     origins, directions = random_rays(np.random.default_rng(15), grid, 5000)
     want = lt.trace_many(grid, origins, directions, parallel=False)
@@ -147,33 +138,4 @@ def test_trace_many_on_two_threads_takes_the_halves():
     finally:
         numba.set_num_threads(previous)
     assert_same(got, want)
-    assert "bound" in phases and "gather" not in phases
-    assert got.cells.base is not None and got.cells.base.shape[0] > got.cells.shape[0]
-
-
-@pytest.mark.skipif(not reset_peak(), reason="needs Linux's /proc/self/clear_refs")
-def test_halves_touch_only_their_output():
-    # The reservation is sized by sampled upper bounds with a margin (here
-    # 1.9x the output), but only the stretch the halves wrote becomes
-    # resident memory: peak resident growth within 1.1x the output, plus the
-    # pages at the stretch's edges (huge pages: 2 MiB at each end of each
-    # array) and the front half's block scratch.
-    grid = lt.Grid(0.1, 10.0, 128, 128, 128)
-    rng = np.random.default_rng(16)
-    n_rays = 100_000
-    o, d = _validate.rays(rng.uniform(-8, 8, (n_rays, 3)), rng.normal(size=(n_rays, 3)))
-    far = np.full(n_rays, np.inf)
-    args = grid.kernel_args()
-    worst = int(_exact.max_segments(*grid.shape))
-    run = lambda n: _batching.run_halves(  # noqa: E731
-        _batching.EXACT_KERNELS, (o[:n], d[:n], far[:n], args), (o[:n], d[:n], args), n, worst)
-    run(2000)
-    before = status("VmRSS")
-    assert reset_peak()
-    traces = run(n_rays)
-    grown = status("VmHWM") - before
-    arrays = (traces.cells, traces.t_enter, traces.t_exit)
-    output = sum(a.nbytes for a in arrays) + traces.offsets.nbytes
-    reserved = sum(a.base.nbytes for a in arrays) + traces.offsets.nbytes
-    assert reserved > 1.4 * output  # all of it touched would fail the test
-    assert grown <= 1.1 * output + 16 * 2**20, (grown / 2**20, output / 2**20)
+    assert "bound" in phases and "shrink" in phases
