@@ -51,6 +51,7 @@ import numba
 import numpy as np
 
 from . import _validate as validate
+from .kernels import atomic as _atomic
 from .kernels import exact as _exact
 from .kernels import ordered as _ordered
 from .kernels.locate import BLOCK
@@ -236,7 +237,8 @@ def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, paralle
     """Trace in one pass (``run_serial``) or in ordered chunks on all threads (``run_ordered``).
 
     Both run the same per-ray code, so the outputs are identical. A batch
-    too small to split, or one thread, takes the serial pass.
+    too small to split, one thread, or a Numba without the chunks' atomics
+    (``kernels.atomic.AVAILABLE``) takes the serial pass.
 
     Two threads once had a path of their own, meeting in the middle of the
     batch; the ordered chunks were as fast in one run (``trace_many`` of
@@ -246,7 +248,7 @@ def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, paralle
     of a reused scratch, then copied to the output) took 62.0 ms in the
     same kind of run, 13% slower than the ordered chunks' 54.6.
     """
-    threads = numba.get_num_threads() if parallel else 1
+    threads = numba.get_num_threads() if parallel and _atomic.AVAILABLE else 1
     if threads == 1 or n_rays < PARALLEL_MIN_RAYS:
         return run_serial(kernels.span, span_inputs, n_rays, worst, buffers)
     return run_ordered(kernels, inputs, bound_inputs, n_rays, worst, threads, buffers)

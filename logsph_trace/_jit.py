@@ -20,9 +20,15 @@ float division by zero return ``inf``/``nan`` as IEEE says instead of
 raising, which the root solvers rely on (a ray parallel to a plane has its
 crossing at infinity).
 ``fastmath`` stays off: it may reorder the tie rules and NaN checks the
-exactness tests hold us to. Processes that start together on an empty cache
-(test workers, a pool) take turns at each kernel (:func:`compile_once`): one
-compiles it, the others load it from the cache.
+exactness tests hold us to.
+
+Two of Numba's private parts are used, each where a user gains, and each
+with a fallback to plain Numba where a release lacks it: the package-wide
+cache stamp extends ``caching._CacheLocator`` (without it, Numba's own
+per-file stamp: :func:`cache_by_package` does nothing), and serial kernels
+drop Numba's runtime through the ``_nrt`` option (without it they keep the
+runtime: ``WITHOUT_RUNTIME``). ``tests/test_nojit.py`` removes each in a
+fresh process and runs a trace.
 
 **Threads and processes.** Numba runs ``prange`` loops on one of three
 threading layers. GNU OpenMP (``omp``, the usual one on Linux) aborts any
@@ -43,19 +49,12 @@ import os
 import signal
 import sys
 import threading
-import time
 import types
 from pathlib import Path
 from typing import NamedTuple
 
 import numba
-from numba.core import caching, event, sigutils
-from numba.core.compiler_lock import global_compiler_lock
-
-try:
-    import fcntl
-except ImportError:  # not POSIX: processes compile their kernels unlocked
-    fcntl = None
+from numba.core import caching, cpu, event
 
 
 def prefer_tbb():
@@ -172,6 +171,13 @@ def interrupts_after(function):
     return holding
 
 
+def _atomics():
+    """Whether the parallel kernels' atomics are at hand (``kernels.atomic.AVAILABLE``)."""
+    from .kernels import atomic  # not at import: that module imports this one
+
+    return atomic.AVAILABLE
+
+
 class Guarded:
     """A parallel kernel, run so that Ctrl-C waits for it to end.
 
@@ -185,9 +191,16 @@ class Guarded:
         self.__name__ = dispatcher.__name__
 
     def __call__(self, *args):
-        """Run the kernel (under the lock on the workqueue layer)."""
+        """Run the kernel (locked on workqueue; one thread without ``kernels.atomic``)."""
         previous = _hold()
         try:
+            if not _atomics():
+                threads = numba.get_num_threads()
+                numba.set_num_threads(1)
+                try:
+                    return self.dispatcher(*args)
+                finally:
+                    numba.set_num_threads(threads)
             if _needs_lock():
                 with _PARALLEL_LOCK:
                     return self.dispatcher(*args)
@@ -227,11 +240,21 @@ _CODEGEN_SETTINGS = ("OPT", "DEBUGINFO_DEFAULT", "BOUNDSCHECK", "EXTEND_VARIABLE
 
 
 def codegen_settings():
-    """Return the values of ``_CODEGEN_SETTINGS`` in ``numba.config`` now, as strings."""
-    return tuple(str(getattr(numba.config, name, None)) for name in _CODEGEN_SETTINGS)
+    """Return ``_CODEGEN_SETTINGS`` in ``numba.config`` now, and the fallbacks taken, as strings.
+
+    The fallbacks (``WITHOUT_RUNTIME``, ``kernels.atomic.AVAILABLE``) are
+    part of the stamp: a kernel compiled with plain stores for atomics must
+    never be loaded where threads share them.
+    """
+    return tuple(str(getattr(numba.config, name, None)) for name in _CODEGEN_SETTINGS) + (
+        f"without runtime {WITHOUT_RUNTIME}", f"atomics {_atomics()}")
 
 
-class _PackageLocator(caching._CacheLocator):
+# Numba's base class of cache locators (private): None where a release lacks it.
+_NumbaLocator = getattr(caching, "_CacheLocator", None) or object
+
+
+class _PackageLocator(_NumbaLocator):
     """Numba's own cache locator for a function, with the package's sources in its stamp.
 
     Numba stores a locator's source stamp in the cache index and throws the
@@ -285,20 +308,27 @@ def cache_by_package(root, impl=None):
 
     ``impl``: the ``CacheImpl`` whose locators to extend, Numba's by default
     (numba-cuda has its own). Called for this package on import; a test
-    registers a package of its own. Has no effect where
-    ``NUMBA_CACHE_LOCATOR_CLASSES`` names the locators.
+    registers a package of its own. Returns whether it took effect: not
+    where Numba lacks the private parts it extends (``_CacheLocator``, a
+    ``CacheImpl`` with ``_locator_classes``), which leaves Numba's own
+    per-file stamp, stale after an edit of another file only.
     """
-    if impl is None:
-        impl = getattr(caching, "CacheImpl", None) or caching._CacheImpl  # numba 0.59: _CacheImpl
+    if impl is None:  # numba 0.59 calls it _CacheImpl
+        impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl", None)
+    locators = getattr(impl, "_locator_classes", None)
+    if _NumbaLocator is object or not isinstance(locators, list):
+        return False
     _ROOTS.setdefault(Path(os.path.realpath(root)), None)
-    locators = impl._locator_classes
     if not any(issubclass(other, _PackageLocator) for other in locators):
         locators.insert(0, type("_PackageLocator", (_PackageLocator,),
                                      {"impl": impl, "__module__": __name__}))
+    return True
 
 
 cache_by_package(Path(__file__).parent)
 _OPTIONS = dict(cache=CACHE, nogil=True, error_model="numpy")
+# Whether this Numba takes the private ``_nrt`` option (see ``jit``).
+WITHOUT_RUNTIME = hasattr(cpu.CPUTargetOptions, "_nrt")
 
 # The first use after an install compiles the kernels a call needs, which
 # takes seconds (``logsph-trace demo``: about 30 s on the 2-core test
@@ -352,87 +382,6 @@ COMPILE_NOTE = CompileNote(__name__.partition(".")[0])
 event.register("numba:compile", COMPILE_NOTE)
 
 
-# How long a process waits for another to finish compiling a kernel (and
-# caching it) before it compiles the kernel itself.
-COMPILE_WAIT = 600.0
-# The lock files this process holds: a kernel whose compile types a call to
-# itself does not wait for its own lock.
-_HELD = set()
-
-
-def _lock_path(dispatcher):
-    """Return the lock file beside a kernel's cache index (None: it has no cache)."""
-    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
-    index = getattr(cache_file, "_index_path", None)
-    return None if fcntl is None or index is None else index + ".lock"
-
-
-def _acquire(path, wait):
-    """Open ``path`` and lock it; return the open file, which holds the lock.
-
-    Returns None, and the caller goes on unlocked, where the file cannot be
-    made, where the file system has no locks, or after ``wait`` seconds.
-    """
-    try:
-        os.makedirs(os.path.dirname(path), exist_ok=True)  # Numba's, made on its first save
-        held = open(path, "a")
-    except OSError:
-        return None
-    deadline = time.monotonic() + wait
-    while True:
-        try:
-            fcntl.flock(held.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-            return held
-        except BlockingIOError:
-            if time.monotonic() > deadline:
-                break
-            time.sleep(0.02)
-        except OSError:  # no locks here (some network file systems)
-            break
-    held.close()
-    return None
-
-
-def compile_once(dispatcher):
-    """Make the processes that compile ``dispatcher`` at once take turns.
-
-    Numba looks in the cache, and compiles on a miss, with nothing shared
-    between processes: test workers or a pool of processes starting on a
-    fresh install all compile the same kernels at the same time (on two
-    cores, two test workers each spent about 90 s compiling the coherent
-    scan). Here a compile takes a lock file beside the kernel's cache index
-    first, and Numba's own ``compile`` then looks in the cache under it, so
-    the process that waited loads what the first one compiled. The lock is
-    taken after this process's compiler lock, so threads of one process
-    never wait on each other's file lock; a kernel's compile locks the
-    kernels it calls after it, in the order of the calls, which has no
-    cycles, so processes cannot deadlock. With no cache, no file locks, or
-    a wait over ``COMPILE_WAIT``, the kernel compiles as before.
-    """
-    if not hasattr(dispatcher, "overloads"):
-        return dispatcher  # NUMBA_DISABLE_JIT=1: the plain Python function
-    compile = dispatcher.compile
-
-    def locked(sig):
-        path = _lock_path(dispatcher)
-        args, _ = sigutils.normalize_signature(sig)
-        if path is None or path in _HELD or tuple(args) in dispatcher.overloads:
-            return compile(sig)
-        with global_compiler_lock:
-            held = _acquire(path, COMPILE_WAIT)
-            if held is None:
-                return compile(sig)
-            _HELD.add(path)
-            try:
-                return compile(sig)
-            finally:
-                _HELD.discard(path)
-                held.close()  # closing the file releases the lock
-
-    dispatcher.compile = locked
-    return dispatcher
-
-
 def jit(func=None, runtime=False, **overrides):
     """``numba.njit`` with the project's options (``parallel=True`` may be added).
 
@@ -450,13 +399,15 @@ def jit(func=None, runtime=False, **overrides):
     without it that calls a kernel that sorts, though only if that sort was
     not compiled earlier in the process (``tests/test_nojit.py`` compiles
     each method first in a fresh process). numba-cuda ignores the option.
+    ``_nrt`` is a private option of Numba's: where a release has no such
+    option (``WITHOUT_RUNTIME`` False), every kernel keeps the runtime.
     """
     options = dict(_OPTIONS, **overrides)
-    if not (runtime or options.get("parallel")):
+    if not (runtime or options.get("parallel")) and WITHOUT_RUNTIME:
         options["_nrt"] = False
 
     def build(f):
-        dispatcher = compile_once(numba.njit(**options)(f))
+        dispatcher = numba.njit(**options)(f)
         return Guarded(dispatcher) if options.get("parallel") else dispatcher
 
     return build if func is None else build(func)

@@ -11,7 +11,6 @@ import os
 import subprocess
 import sys
 import textwrap
-import time
 
 import numpy as np
 import pytest
@@ -191,48 +190,65 @@ def test_a_kernel_cached_under_other_numba_settings_is_compiled_again(tmp_path):
     assert run() == ["0", "1"]
 
 
-SLOW_TO_COMPILE = """
-import math
-import numpy as np
-from logsph_trace._jit import jit
-@jit(runtime=True)
-def wave(x):
-    values = np.empty(64)
-    for k in range(64):
-        values[k] = math.sin(k * x) / (k + 1) + math.cos(k * x + 1.0) / (k * k + 1)
-    order = np.argsort(values)
-    total = 0.0
-    for k in range(64):
-        total += values[order[k]] * math.exp(-k * x * x) + np.median(values[:k + 1])
-    return total
-"""
+WITHOUT_PRIVATE_PARTS = textwrap.dedent(
+    """
+    import sys
+    import numba.extending
+    from numba.core import caching, cpu
 
-TOGETHER = """
-import os, sys, time
-from pkg.main import wave
-open(f"ready-{os.getpid()}", "w").close()
-while not os.path.exists("go"):
-    time.sleep(0.001)
-wave(0.5)
-print(wave.stats.cache_hits.get(wave.signatures[0], 0))
-"""
+    # What a Numba release could drop: the base class of cache locators, the
+    # option that compiles a kernel without the runtime, and the intrinsics
+    # the atomics are written with.
+    del caching._CacheLocator
+    delattr(next(c for c in cpu.CPUTargetOptions.__mro__ if "_nrt" in vars(c)), "_nrt")
+    del numba.extending.intrinsic
+
+    import numpy as np
+    import logsph_trace as lt
+    from logsph_trace import _jit
+    from logsph_trace.kernels import atomic, exact
+
+    assert not _jit.WITHOUT_RUNTIME and not atomic.AVAILABLE
+    assert not _jit.cache_by_package(_jit.Path(exact.__file__).parent)
+    rng = np.random.default_rng(4)
+    grid = lt.Grid(0.3, 10.0, 8, 12, 6)
+    origins = rng.uniform(-12, 12, (3000, 3))
+    directions = rng.normal(size=(3000, 3))
+    traces = lt.trace_many(grid, origins, directions, parallel=True)
+    map = lt.OccupancyGrid(grid).integrate(origins * 0.5, [0.2, 0.1, 0.0])
+    radial = lt.OccupancyGrid(grid).integrate(np.repeat(origins * 0.5, 2, axis=0), [0, 0, 0])
+    cone = lt.trace_cone(grid, [0.4, 1.5, 1.2], [-0.1, -0.4, 1.0], 0.1, n_rays=700)
+    np.savez(sys.argv[1], offsets=traces.offsets, cells=traces.cells, t_exit=traces.t_exit,
+             log_odds=map.log_odds, radial=radial.log_odds, cone_cells=cone.cells,
+             cone_weights=cone.weights)
+    """
+)
 
 
-def test_processes_compiling_one_kernel_at_once_compile_it_once(tmp_path):
-    """Test workers (or a user's pool) starting together on a fresh install each
-    compiled every kernel: Numba shares nothing between processes until a
-    kernel is cached. With the lock file beside the cache index
-    (``_jit.compile_once``), one process compiles and the other, which
-    waited, loads the kernel from the cache."""
-    _, _, start = _package(tmp_path, SLOW_TO_COMPILE, TOGETHER)
-    workers = [start() for _ in range(2)]
-    deadline = time.monotonic() + 120.0
-    while len(list(tmp_path.glob("ready-*"))) < 2 and time.monotonic() < deadline:
-        time.sleep(0.01)  # until both have imported Numba and wait for the word
-    (tmp_path / "go").write_text("")
-    hits = sorted(worker.communicate(timeout=300)[0].split() for worker in workers)
-    assert all(worker.returncode == 0 for worker in workers)
-    assert hits == [["0"], ["1"]]  # one compiled it, the other loaded it
+def test_without_numbas_private_parts_the_package_falls_back_to_plain_numba(tmp_path):
+    """Three private parts of Numba are used (the cache locator's base class,
+    the ``_nrt`` option, ``intrinsic`` for the atomics); each has a fallback.
+    Removed in a fresh process before the import, the package still gives
+    the same answers: the batches and the parallel kernels on one thread."""
+    out = tmp_path / "plain.npz"
+    env = dict(os.environ, LOGSPH_TRACE_CACHE="0", LOGSPH_TRACE_COMPILE_NOTE="0")
+    subprocess.run([sys.executable, "-c", WITHOUT_PRIVATE_PARTS, str(out)], check=True,
+                   env=env, timeout=600)
+    got = np.load(out)
+    rng = np.random.default_rng(4)
+    grid = lt.Grid(0.3, 10.0, 8, 12, 6)
+    origins = rng.uniform(-12, 12, (3000, 3))
+    directions = rng.normal(size=(3000, 3))
+    traces = lt.trace_many(grid, origins, directions, parallel=True)
+    occupancy = lt.OccupancyGrid(grid).integrate(origins * 0.5, [0.2, 0.1, 0.0])
+    radial = lt.OccupancyGrid(grid).integrate(np.repeat(origins * 0.5, 2, axis=0), [0, 0, 0])
+    cone = lt.trace_cone(grid, [0.4, 1.5, 1.2], [-0.1, -0.4, 1.0], 0.1, n_rays=700)
+    want = dict(offsets=traces.offsets, cells=traces.cells, t_exit=traces.t_exit,
+                log_odds=occupancy.log_odds, radial=radial.log_odds, cone_cells=cone.cells,
+                cone_weights=cone.weights)
+    assert traces.cells.shape[0] > 5000 and np.any(occupancy.log_odds != 0)
+    for name, value in want.items():
+        np.testing.assert_array_equal(got[name], value, err_msg=name)
 
 
 def test_the_package_kernels_are_checked_against_all_its_sources():

@@ -36,53 +36,65 @@ calls ``yield_thread`` between them (``ordered.pause``): the C library's
 ``sched_yield``, which hands the CPU to another runnable thread, if any.
 With more threads than CPUs the one being waited for may be among those.
 
-With ``NUMBA_DISABLE_JIT=1`` all nine are plain Python (and the two
-wrappers with them).
+These are LLVM instructions that Numba does not offer: they are written
+with ``numba.extending.intrinsic``, LLVM IR through llvmlite, and Numba's
+``cgutils``. Where a release lacks any of those, ``AVAILABLE`` is False and
+all nine are plain loads and stores, as they are under
+``NUMBA_DISABLE_JIT=1``: every parallel kernel then runs on one thread
+(``_jit.Guarded``), and a batch takes the serial pass, so nothing races.
+``tests/test_nojit.py`` imports the package so, in a fresh process.
 """
 
 import ctypes
 import sys
-import time
 
 import numba
-from llvmlite import binding as llvm
-from llvmlite import ir
-from numba import types
-from numba.core import cgutils
-from numba.extending import intrinsic
 
 from .._jit import jit
 
-if numba.config.DISABLE_JIT:
+try:
+    from llvmlite import binding as llvm
+    from llvmlite import ir
+    from numba import types
+    from numba.core import cgutils
+    from numba.extending import intrinsic
+
+    _get_item_pointer = cgutils.get_item_pointer
+    _get_or_insert_function = cgutils.get_or_insert_function
+    AVAILABLE = not numba.config.DISABLE_JIT
+except (ImportError, AttributeError):
+    AVAILABLE = False
+
+if not AVAILABLE:
 
     def store_relaxed(array, index, value):
-        """Python stand-in: ``array[index] = value``."""
+        """Stand-in: ``array[index] = value``."""
         array[index] = value
 
     def load_relaxed(array, index):
-        """Python stand-in: ``array[index]``."""
+        """Stand-in: ``array[index]``."""
         return array[index]
 
     def exchange(array, index, value):
-        """Python stand-in: set ``array[index]`` to ``value``; return what it held."""
+        """Stand-in: set ``array[index]`` to ``value``; return what it held."""
         old = array[index]
         array[index] = value
         return old
 
     def fetch_add(array, index, value):
-        """Python stand-in: add ``value`` to ``array[index]``; return what it held."""
+        """Stand-in: add ``value`` to ``array[index]``; return what it held."""
         old = array[index]
         array[index] = old + value
         return old
 
     def fetch_min(array, index, value):
-        """Python stand-in: lower ``array[index]`` to ``value`` if above; return what it held."""
+        """Stand-in: lower ``array[index]`` to ``value`` if above; return what it held."""
         old = array[index]
         array[index] = min(old, value)
         return old
 
     def fetch_max(array, index, value):
-        """Python stand-in: raise ``array[index]`` to ``value`` if below; return what it held."""
+        """Stand-in: raise ``array[index]`` to ``value`` if below; return what it held."""
         old = array[index]
         array[index] = max(old, value)
         return old
@@ -91,13 +103,19 @@ if numba.config.DISABLE_JIT:
     load_ordered = load_relaxed
 
     def yield_thread():
-        """Python stand-in: offer the CPU to another thread."""
-        time.sleep(0)
+        """Stand-in: nothing (the kernels that wait run on one thread here)."""
+
+    if not numba.config.DISABLE_JIT:  # the stand-ins, compiled
+        (store_relaxed, load_relaxed, exchange, fetch_add, fetch_min, fetch_max, yield_thread) = (
+            jit(inline="always")(f) for f in (store_relaxed, load_relaxed, exchange, fetch_add,
+                                              fetch_min, fetch_max, yield_thread))
+        store_ordered = store_relaxed
+        load_ordered = load_relaxed
 
 else:
 
     def _element_pointer(context, builder, array_type, array, index):
-        return cgutils.get_item_pointer(context, builder, array_type,
+        return _get_item_pointer(context, builder, array_type,
                                         context.make_array(array_type)(context, builder, array),
                                         [index], wraparound=False)
 
@@ -225,10 +243,15 @@ else:
     # calls it SwitchToThread). Linked by name, so a cached kernel still finds
     # it; the name is given its address here for LLVM's linker, which looks up
     # only some platforms' C library by itself.
+    # Where that fails, a waiting thread only spins.
     _YIELD = "SwitchToThread" if sys.platform == "win32" else "sched_yield"
-    if not llvm.address_of_symbol(_YIELD):
-        _library = ctypes.WinDLL("kernel32") if sys.platform == "win32" else ctypes.CDLL(None)
-        llvm.add_symbol(_YIELD, ctypes.cast(getattr(_library, _YIELD), ctypes.c_void_p).value)
+    try:
+        if not llvm.address_of_symbol(_YIELD):
+            _library = ctypes.WinDLL("kernel32") if sys.platform == "win32" else ctypes.CDLL(None)
+            llvm.add_symbol(_YIELD, ctypes.cast(getattr(_library, _YIELD), ctypes.c_void_p).value)
+        _CAN_YIELD = True
+    except (OSError, AttributeError):
+        _CAN_YIELD = False
 
     @intrinsic
     def yield_thread(typingctx):
@@ -236,9 +259,10 @@ else:
         returns at once when none is waiting for it."""
 
         def codegen(context, builder, signature, args):
-            function = cgutils.get_or_insert_function(
-                builder.module, ir.FunctionType(ir.IntType(32), []), _YIELD)
-            builder.call(function, [])
+            if _CAN_YIELD:
+                function = _get_or_insert_function(
+                    builder.module, ir.FunctionType(ir.IntType(32), []), _YIELD)
+                builder.call(function, [])
             return context.get_dummy_value()
 
         return types.void(), codegen

@@ -17,31 +17,37 @@ first aligned address and after the last whole vector are copied plainly.
 Non-temporal stores are weakly ordered, so every copy ends with a full
 fence: the thread that made it has finished writing before it returns.
 
-With ``NUMBA_DISABLE_JIT=1`` the stores are plain slice assignments.
+With ``NUMBA_DISABLE_JIT=1``, or where Numba lacks the parts the stores
+are written with (as ``atomic.AVAILABLE``), the stores are plain copies.
 """
 
 import numba
-from llvmlite import ir
-from numba import types
-from numba.core import cgutils
-from numba.extending import intrinsic
 
 from .._jit import jit
+from .atomic import AVAILABLE
 
 # Bytes one non-temporal store writes; its target address must be a multiple.
 STREAM_BYTES = 32
 
-if numba.config.DISABLE_JIT:
+if not AVAILABLE:
 
     def _stream32(dst, di, src, si):
-        """Python stand-in: copy 32 bytes' worth of elements from src[si] to dst[di]."""
-        k = STREAM_BYTES // dst.itemsize
-        dst[di:di + k] = src[si:si + k]
+        """Stand-in: copy 32 bytes' worth of elements from src[si] to dst[di], plainly."""
+        for k in range(STREAM_BYTES // dst.itemsize):
+            dst[di + k] = src[si + k]
 
     def _store_fence():
-        """Python stand-in: nothing to order."""
+        """Stand-in: nothing to order."""
+
+    if not numba.config.DISABLE_JIT:
+        _stream32 = jit(inline="always")(_stream32)
+        _store_fence = jit(inline="always")(_store_fence)
 
 else:
+    from llvmlite import ir
+    from numba import types
+    from numba.core import cgutils
+    from numba.extending import intrinsic
 
     @intrinsic
     def _stream32(typingctx, dst, di, src, si):
