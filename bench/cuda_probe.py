@@ -20,7 +20,7 @@ from numba import cuda
 
 import logsph_trace as lt
 from bench.workload import write_results
-from logsph_trace.kernels import exact
+from logsph_trace.kernels import exact, geometry
 
 
 @cuda.jit
@@ -56,8 +56,8 @@ def probe(n_rays, cells):
     directions[axis_rows] /= np.linalg.norm(directions[axis_rows], axis=1)[:, None]
 
     args = grid.kernel_args()
-    size = int(exact.scratch_size(*grid.shape))
-    worst = int(exact.max_segments(*grid.shape))
+    size = int(geometry.scratch_size(*grid.shape))
+    worst = int(geometry.max_segments(*grid.shape))
     device = type(args)(*[cuda.to_device(np.ascontiguousarray(a)) if isinstance(a, np.ndarray)
                            else a for a in args])
     d_origins = cuda.to_device(origins)

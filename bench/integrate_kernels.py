@@ -29,6 +29,8 @@ from logsph_trace import occupancy as occupancy_module
 KERNELS = ("mark_radial", "apply_radial", "ray_extent", "bin_rays", "mark_scan", "ray_cone",
            "columns_in_view", "near_masks", "mark_candidates", "apply_scan")
 CHECKS = ("vectors", "finite_rows", "point", "choice")
+# The occupancy module's attributes the kernels are read through, and its checks'.
+MODULES = ("_coherent", "_radial", "_update", "validate")
 # mark_scan's walk argument (the 7th), by the kernels' names for it.
 WALKS = ("WALK_ALL", "WALK_SAMPLES", "WALK_OTHERS")
 
@@ -37,12 +39,12 @@ WALKS = ("WALK_ALL", "WALK_SAMPLES", "WALK_OTHERS")
 def kernel_timers(times):
     """Time every kernel and input check ``integrate`` calls into ``times`` (ms), while open.
 
-    The occupancy module reads its kernels and checks through two module
-    attributes; they are swapped for namespaces of timed wrappers and put
-    back on exit.
+    The occupancy module reads its kernels and checks through module
+    attributes (``MODULES``); they are swapped for namespaces of timed
+    wrappers and put back on exit.
     """
-    kernels, checks = occupancy_module._kernels, occupancy_module.validate
-    walks = {getattr(kernels, name): name[5:].lower() for name in WALKS}
+    originals = {name: getattr(occupancy_module, name) for name in MODULES}
+    walks = {getattr(originals["_coherent"], name): name[5:].lower() for name in WALKS}
 
     def timer(function, label, walk=False):
         def timed(*args, **kwargs):
@@ -53,19 +55,19 @@ def kernel_timers(times):
             return result
         return timed
 
-    kernel_proxy = types.SimpleNamespace(**{
-        name: getattr(kernels, name) for name in dir(kernels) if not name.startswith("__")})
-    for name in KERNELS:
-        setattr(kernel_proxy, name, timer(getattr(kernels, name), name, name == "mark_scan"))
-    check_proxy = types.SimpleNamespace(**{
-        name: getattr(checks, name) for name in dir(checks) if not name.startswith("__")})
-    for name in CHECKS:
-        setattr(check_proxy, name, timer(getattr(checks, name), f"check: {name}"))
-    occupancy_module._kernels, occupancy_module.validate = kernel_proxy, check_proxy
+    for attribute, module in originals.items():
+        proxy = types.SimpleNamespace(**{
+            name: getattr(module, name) for name in dir(module) if not name.startswith("__")})
+        for name in (CHECKS if attribute == "validate" else KERNELS):
+            if hasattr(module, name):
+                label = f"check: {name}" if attribute == "validate" else name
+                setattr(proxy, name, timer(getattr(module, name), label, name == "mark_scan"))
+        setattr(occupancy_module, attribute, proxy)
     try:
         yield
     finally:
-        occupancy_module._kernels, occupancy_module.validate = kernels, checks
+        for attribute, module in originals.items():
+            setattr(occupancy_module, attribute, module)
 
 
 def main(argv=None):

@@ -22,7 +22,7 @@ from numba import prange
 
 from bench.workload import make_grid, make_rays, write_results
 from logsph_trace import _validate
-from logsph_trace.kernels import exact
+from logsph_trace.kernels import geometry
 from logsph_trace.kernels.locate import GridArrays, per_log_of
 
 
@@ -42,7 +42,7 @@ def _bounds(origins, directions, grid, bounds, first, last):
     lookups = np.empty(8, dtype=np.int64)
     per_log = per_log_of(grid.rho_edges, grid.rho_kind)
     for row in range(first, last):
-        bounds[row] = exact.ray_bound(origins, directions, row, grid, per_log, lookups)
+        bounds[row] = geometry.ray_bound(origins, directions, row, grid, per_log, lookups)
 
 
 _bounds = numba.njit(_bounds)

@@ -53,6 +53,7 @@ import numpy as np
 from . import _validate as validate
 from .kernels import atomic as _atomic
 from .kernels import exact as _exact
+from .kernels import geometry as _geometry
 from .kernels import ordered as _ordered
 from .kernels.locate import BLOCK
 from .traces import Traces
@@ -257,7 +258,7 @@ def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, paralle
 def bound_counts(origins, directions, args, bounds):
     """Write an upper bound on each ray's segments into ``bounds``: its set-up only.
 
-    A ray never writes more segments than its bound (``exact.segments_bound``),
+    A ray never writes more segments than its bound (``geometry.segments_bound``),
     so regions sized by the bounds cannot overflow. Blocks of rays on all
     threads (``exact.trace_chunks`` with ``BOUND``).
     """
@@ -278,12 +279,12 @@ EXACT_KERNELS = BatchKernels(_exact.trace_span, _exact.trace_ordered, bound_coun
 def run_exact(grid, origins, directions, t_max, parallel, buffers=None):
     """Trace with the exact method, serially or on all threads (see the module docstring)."""
     args = grid.kernel_args()
-    size = int(_exact.scratch_size(*grid.shape))
+    size = int(_geometry.scratch_size(*grid.shape))
     scratch = (np.empty((3, size), dtype=np.float64), np.empty((3, size), dtype=np.int64),
                np.empty(8, dtype=np.int64), _exact.TRACE)
     inputs = (origins, directions, t_max, args)
     return run_batch(EXACT_KERNELS, inputs + scratch, inputs, (origins, directions, args),
-                     origins.shape[0], int(_exact.max_segments(*grid.shape)), parallel, buffers)
+                     origins.shape[0], int(_geometry.max_segments(*grid.shape)), parallel, buffers)
 
 
 # The ordered chunks reserve this much more than the sampled bounds promise;
@@ -343,7 +344,7 @@ def run_exact_ordered(grid, origins, directions, t_max, workers, buffers=None, t
     """
     inputs = (origins, directions, t_max, grid.kernel_args())
     return run_ordered(EXACT_KERNELS, inputs, (origins, directions, inputs[3]), origins.shape[0],
-                       int(_exact.max_segments(*grid.shape)), workers, buffers, touch_ahead)
+                       int(_geometry.max_segments(*grid.shape)), workers, buffers, touch_ahead)
 
 
 def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=None,
@@ -468,7 +469,7 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
 def _trace_regions_serial(grid, origins, directions, t_max, args, starts, segment_arrays, start):
     """``trace_regions`` on this thread: a bound pass, then the rays in order, back to back."""
     n_rays = origins.shape[0]
-    size = int(_exact.scratch_size(*grid.shape))
+    size = int(_geometry.scratch_size(*grid.shape))
     times = np.empty((3, size), dtype=np.float64)
     zones = np.empty((3, size), dtype=np.int64)
     lookups = np.empty(8, dtype=np.int64)
@@ -476,7 +477,7 @@ def _trace_regions_serial(grid, origins, directions, t_max, args, starts, segmen
     offsets[0] = 0
     _exact.trace_span(0, n_rays, origins, directions, t_max, args, times, zones, lookups,
                       _exact.BOUND, *_NO_SEGMENTS, offsets, 0, np.iinfo(np.int64).max)
-    total = int(offsets[1:].sum()) + int(_exact.max_segments(*grid.shape))
+    total = int(offsets[1:].sum()) + int(_geometry.max_segments(*grid.shape))
     validate.fits("n_rays", total * SEGMENT_BYTES + 16 * n_rays,
                   f"tracing {n_rays:,} rays of cones (at most {total:,} segments)")
     cells, t_enter, t_exit = segment_arrays(total)

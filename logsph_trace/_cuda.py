@@ -34,8 +34,10 @@ from numba import cuda
 from . import _validate as validate
 from ._jit import CACHE, cache_by_package
 from .kernels import cone as _cone
-from .kernels import exact, locate
-from .kernels import occupancy as _occupancy
+from .kernels import exact, geometry, locate
+from .kernels import radial as _radial
+from .kernels import update as _update
+from .kernels import walk as _walk
 from .traces import Traces
 
 THREADS = 128  # threads per block
@@ -82,7 +84,7 @@ def _bound_kernel(origins, directions, grid, per_log, first, lookups, bounds):
     k = cuda.grid(1)
     row = first + k
     if k < lookups.shape[0] and row < origins.shape[0]:
-        bounds[row] = exact.ray_bound(origins, directions, row, grid, per_log, lookups[k])
+        bounds[row] = geometry.ray_bound(origins, directions, row, grid, per_log, lookups[k])
 
 
 @kernel
@@ -179,7 +181,7 @@ def _device_grid(grid):
     """Return the grid's ``GridArrays`` with its arrays on the device (cached on the grid).
 
     The cone arrays go without the CPU's padding: a GPU thread times only
-    the cones it needs (``exact._branch_times``), where a CPU core computes
+    the cones it needs (``crossings._branch_times``), where a CPU core computes
     a whole vector of them at no extra cost.
     """
     cached = getattr(grid, "_cuda_args", None)
@@ -234,7 +236,7 @@ def _trace(grid, d_origins, d_directions, d_t_max):
     """``trace_many`` of rays already on the device."""
     n_rays = d_origins.shape[0]
     args = _device_grid(grid)
-    size = int(exact.scratch_size(*grid.shape))
+    size = int(geometry.scratch_size(*grid.shape))
     times, zones, lookups = _scratch(size, n_rays)
     in_flight = lookups.shape[0]
 
@@ -668,7 +670,7 @@ def aggregate_cones(grid, origins, directions, ray_weights, counts, j_shifts, fi
 
 # ---- the occupancy map ----------------------------------------------------------------------
 #
-# The CPU's per-ray code (``kernels.occupancy``: ``sensor_ray`` and
+# The CPU's per-ray code (``kernels.walk``: ``sensor_ray`` and
 # ``walk_ray``, or ``radial_ray`` for a sensor at the centre) marks the cells
 # each ray frees, one thread per ray, into flags shared by all threads: every
 # write is a 1, so threads may write the same flag. One thread per cell then
@@ -687,11 +689,11 @@ def _mark_scan_kernel(first_row, origin, points, max_range, grid, zone, times, z
         ox = origin[0]
         oy = origin[1]
         oz = origin[2]
-        dx, dy, dz, distance, is_hit, is_ray = _occupancy.sensor_ray(points, row, ox, oy, oz,
+        dx, dy, dz, distance, is_hit, is_ray = _walk.sensor_ray(points, row, ox, oy, oz,
                                                                      max_range)
         hits[row] = -1
         if is_ray:
-            hits[row] = _occupancy.walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, zone[0],
+            hits[row] = _walk.walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, zone[0],
                                             zone[1], zone[2], grid, times[:, :, k],
                                             zones[:, :, k], lookups[k], free, 0)
 
@@ -707,7 +709,7 @@ def _mark_radial_kernel(points, max_range, grid, per_log, free_extent, hits):
         guesses = cuda.local.array(3, np.int64)
         for zone in range(3):
             guesses[zone] = -1
-        column, free, hits[row] = _occupancy.radial_ray(points, row, max_range, grid, per_log,
+        column, free, hits[row] = _radial.radial_ray(points, row, max_range, grid, per_log,
                                                         guesses)
         if column >= 0 and free > 0:
             cuda.atomic.max(free_extent, column, free)
@@ -728,7 +730,7 @@ def _apply_scan_kernel(log_odds, free, hit, n_rho, log_hit, log_miss, log_min, l
     if index < free.shape[0] and (free[index] != 0 or hit[index] != 0):
         n_columns = free.shape[0] // n_rho
         cell = (index % n_rho) * n_columns + index // n_rho
-        _occupancy._update(log_odds, cell, hit[index] != 0, free[index] != 0, log_hit, log_miss,
+        _update._update(log_odds, cell, hit[index] != 0, free[index] != 0, log_hit, log_miss,
                            log_min, log_max)
 
 
@@ -740,7 +742,7 @@ def _apply_radial_kernel(log_odds, free_extent, hit, log_hit, log_miss, log_min,
         n_columns = free_extent.shape[0]
         free = cell // n_columns < free_extent[cell % n_columns]
         if free or hit[cell] != 0:
-            _occupancy._update(log_odds, cell, hit[cell] != 0, free, log_hit, log_miss, log_min,
+            _update._update(log_odds, cell, hit[cell] != 0, free, log_hit, log_miss, log_min,
                                log_max)
 
 
@@ -782,7 +784,7 @@ def integrate(grid, log_odds, points, origin, max_range, update, want_hits=False
         locate.theta_zone(origin[0], origin[2], grid.theta_edges, grid.theta_kind),
         locate.phi_zone(*origin, grid.phi_edges, grid.phi_kind)], dtype=np.int64)
     free = cuda.to_device(np.zeros(n_cells, dtype=np.uint8))
-    times, zones, lookups = _scratch(int(exact.scratch_size(*grid.shape)), n_rays)
+    times, zones, lookups = _scratch(int(geometry.scratch_size(*grid.shape)), n_rays)
     d_origin, d_zone = cuda.to_device(origin), cuda.to_device(zone)
     in_flight = lookups.shape[0]
     for first_row in range(0, n_rays, in_flight):

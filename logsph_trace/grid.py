@@ -6,7 +6,7 @@ import numpy as np
 
 from . import _validate as validate
 from .kernels import locate as _locate
-from .kernels.exact import FLAT_TAN2
+from .kernels.crossings import FLAT_TAN2
 from .trace import cuda_backend
 
 SPACINGS = ("log", "paper", "uniform")

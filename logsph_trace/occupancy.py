@@ -24,8 +24,10 @@ from ._batching import lap
 from ._files import atomic_write, npz_path, write_npz
 from ._jit import interrupts_after
 from .grid import Grid
-from .kernels import occupancy as _kernels
-from .kernels.exact import AT_CENTRE
+from .kernels import coherent as _coherent
+from .kernels import radial as _radial
+from .kernels import update as _update
+from .kernels.geometry import AT_CENTRE
 from .sensor import depth_to_points
 from .trace import cuda_backend
 
@@ -94,7 +96,7 @@ def _coarsening(per_side, n_rays, extent):
     A coarse bin's first ray is a sample, walked whole: the more of the other
     rays share its cells, the more it saves them. The rays per bin are
     ``n_rays`` over the bins in the faces' boxes of ``extent``
-    (``_kernels.ray_extent``), at ``per_side`` bins a side. A coarse bin is
+    (``kernels.coherent.ray_extent``), at ``per_side`` bins a side. A coarse bin is
     at most ``BINS_PER_CELL`` bins across, about the narrowest cell, so that
     the samples cross most cells near the sensor: twice as wide, the table
     scan 10 cm off took 318 ms instead of 48. The real Motorcycle frame, dense
@@ -137,7 +139,7 @@ def _zeroed_scratch(kind, shape, dtype):
 
 
 def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, workers):
-    """Flag the cells the rays from ``origin`` cross (``_kernels.mark_scan``).
+    """Flag the cells the rays from ``origin`` cross (``kernels.coherent.mark_scan``).
 
     From inside the egocentric gap (``_coherent_plan``), most crossings lie
     near the sensor, where neighbouring rays cross the same cells. There the
@@ -150,7 +152,7 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, w
     2. A cell the samples did not flag that another ray's walk could meet
        first is a shell-0 cell (its first) or a neighbour of a flagged one:
        a candidate. Each direction bin gets a limit, the lowest shell of a
-       candidate that a direction in it meets (``_kernels.mark_candidates``).
+       candidate that a direction in it meets (``kernels.coherent.mark_candidates``).
     3. The other rays start on the inner sphere of their bin's limit, or the
        last one below it they cross: every cell they cross below it was
        flagged by a sample. Near the sensor that is most cells; a ray far
@@ -162,7 +164,7 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, w
     ``free`` and ``words``: the scan's flags (``apply_scan``), shared by the
     ``workers`` (one per thread); ``hits``
     gets each ray's hit cell; ``view`` (a byte per column) the columns some
-    ray may meet (``_kernels.columns_in_view``; all of them when the scan
+    ray may meet (``kernels.coherent.columns_in_view``; all of them when the scan
     is walked ray by ray), the only ones ``apply_scan`` reads. Returns how
     many rays were let start beyond the gap's sphere, how many of those
     ended below it and how many stayed in one column (the last two not
@@ -174,31 +176,31 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, w
     per_side = _coherent_plan(grid, origin, points.shape[0])
     if per_side == 0:
         view[:] = 1
-        _kernels.mark_scan(origin, points, max_range, args, free, hits, _kernels.WALK_ALL,
+        _coherent.mark_scan(origin, points, max_range, args, free, hits, _coherent.WALK_ALL,
                            no_rows, no_rows, no_rows, no_marks, 0, workers)
         return 0, 0, 0
     n_bins = 6 * per_side * per_side
     bins = np.empty(points.shape[0], dtype=np.int64)
     coarse_bins = np.empty(points.shape[0], dtype=np.int64)
     boxes = np.empty((6, 4))
-    _kernels.ray_extent(origin, points, EXTENT_STRIDE, boxes)
+    _coherent.ray_extent(origin, points, EXTENT_STRIDE, boxes)
     coarse = max(per_side // _coarsening(per_side, points.shape[0], boxes), 1)
     first = np.empty(6 * coarse * coarse, dtype=np.int64)
-    _kernels.bin_rays(origin, points, per_side, coarse, bins, coarse_bins, first, boxes)
-    _kernels.mark_scan(origin, points, max_range, args, free, hits, _kernels.WALK_SAMPLES,
+    _coherent.bin_rays(origin, points, per_side, coarse, bins, coarse_bins, first, boxes)
+    _coherent.mark_scan(origin, points, max_range, args, free, hits, _coherent.WALK_SAMPLES,
                        coarse_bins, first, bins, no_marks, 0, workers)
     rays = np.empty(4)
     # Every ray's coarse bin holds a sample: the cone of those bins holds every ray.
-    _kernels.ray_cone(first, points.shape[0], coarse, workers, rays)
-    _kernels.columns_in_view(origin, args, rays, view)
+    _coherent.ray_cone(first, points.shape[0], coarse, workers, rays)
+    _coherent.columns_in_view(origin, args, rays, view)
     skip = min(grid.n_rho - 1, 63)  # the masks' 64 bits
     masks = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint64)
-    _kernels.near_masks(words, grid.n_rho, skip, view, masks, workers)
+    _coherent.near_masks(words, grid.n_rho, skip, view, masks, workers)
     limit = np.empty(n_bins, dtype=np.uint8)
-    _kernels.mark_candidates(origin, args, masks, skip, per_side, rays, view, boxes, limit,
+    _coherent.mark_candidates(origin, args, masks, skip, per_side, rays, view, boxes, limit,
                              workers)
-    started, ended, straight = _kernels.mark_scan(origin, points, max_range, args, free, hits,
-                                                  _kernels.WALK_OTHERS, coarse_bins, first, bins,
+    started, ended, straight = _coherent.mark_scan(origin, points, max_range, args, free, hits,
+                                                  _coherent.WALK_OTHERS, coarse_bins, first, bins,
                                                   limit, skip, workers)
     return int(started), int(ended), int(straight)
 
@@ -481,10 +483,10 @@ class OccupancyGrid:
                                  np.int64) as free_extent, \
                     _zeroed_scratch("hit_mask", (n_cells,), np.uint8) as hit_mask:
                 start = lap("prepare", start)
-                _kernels.mark_radial(points, max_range, grid.kernel_args(), free_extent, hits,
+                _radial.mark_radial(points, max_range, grid.kernel_args(), free_extent, hits,
                                      threads)
                 start = lap("mark", start)
-                _kernels.apply_radial(log_odds, free_extent, hits, hit_mask,
+                _radial.apply_radial(log_odds, free_extent, hits, hit_mask,
                                       grid.n_theta, grid.n_phi, *update, threads)
                 lap("apply", start)
         else:
@@ -498,7 +500,7 @@ class OccupancyGrid:
                 _mark_off_centre(grid, origin, points, max_range, free, hits, words, view,
                                  threads)
                 start = lap("mark", start)
-                _kernels.apply_scan(log_odds, free, words, hits, grid.n_rho,
+                _update.apply_scan(log_odds, free, words, hits, grid.n_rho,
                                     view, *update, threads)
                 lap("apply", start)
         if points.shape[0] and isinstance(hits, np.ndarray) and hits.max() < 0:

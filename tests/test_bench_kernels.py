@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import logsph_trace as lt
-from bench.integrate_kernels import kernel_timers
+from bench.integrate_kernels import MODULES, kernel_timers
 from logsph_trace import occupancy as occupancy_module
 
 GRID = dict(rho_min=0.3, rho_max=6.0, n_rho=24, n_theta=72, n_phi=36)
@@ -47,8 +47,8 @@ def test_a_few_rays_off_the_centre_are_walked_whole():
 
 
 def test_the_timers_are_taken_off_after_an_error():
-    kernels, checks = occupancy_module._kernels, occupancy_module.validate
+    before = [getattr(occupancy_module, name) for name in MODULES]
     with pytest.raises(ValueError, match="finite"):
         with kernel_timers({}):
             lt.OccupancyGrid(lt.Grid(**GRID)).integrate([[np.nan, 1.0, 1.0]], (0, 0, 0))
-    assert occupancy_module._kernels is kernels and occupancy_module.validate is checks
+    assert [getattr(occupancy_module, name) for name in MODULES] == before

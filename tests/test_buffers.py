@@ -7,7 +7,7 @@ from conftest import GRIDS, random_rays
 
 import logsph_trace as lt
 from logsph_trace import _batching, _validate
-from logsph_trace.kernels import exact as _exact
+from logsph_trace.kernels import geometry as _geometry
 
 FIELDS = ("offsets", "cells", "t_enter", "t_exit")
 
@@ -22,7 +22,7 @@ def _ordered(grid, origins, directions, buffers):
     o, d = _validate.rays(origins, directions)
     args = grid.kernel_args()
     return _batching.run_ordered(_batching.EXACT_KERNELS, (o, d, np.full(len(o), np.inf), args),
-                                 (o, d, args), len(o), int(_exact.max_segments(*grid.shape)), 3,
+                                 (o, d, args), len(o), int(_geometry.max_segments(*grid.shape)), 3,
                                  buffers)
 
 
@@ -84,7 +84,7 @@ def test_ordered_chunks_write_into_buffers_big_enough_from_the_start():
         capacity = buffers.capacity
         got = _batching.run_ordered(_batching.EXACT_KERNELS, (o, d, far, grid.kernel_args()),
                                     (o, d, grid.kernel_args()), len(o),
-                                    int(_exact.max_segments(*grid.shape)), workers, buffers)
+                                    int(_geometry.max_segments(*grid.shape)), workers, buffers)
         assert_same(got, want)
         assert np.shares_memory(got.t_enter, buffers.t_enter)
         assert buffers.capacity == capacity

@@ -12,7 +12,7 @@ from test_occupancy import _reference_log_odds
 
 import logsph_trace as lt
 from logsph_trace import occupancy as occ
-from logsph_trace.kernels import occupancy as kernels
+from logsph_trace.kernels import coherent, update
 
 
 def _camera_scan(rng, sensor, forward, up=(0.0, 1.0, 0.0), shape=(120, 160), focal=180.0,
@@ -277,7 +277,7 @@ def test_a_cells_shadow_holds_every_direction_meeting_it(grid, sensor):
     origin = np.asarray(sensor, dtype=np.float64)
     args = grid.kernel_args()
     q = occ._coherent_plan(grid, origin, 10**9)
-    corners = np.empty((3, kernels.MAX_CORNERS))
+    corners = np.empty((3, coherent.MAX_CORNERS))
     everywhere = np.array([0.0, 0.0, 1.0, np.pi])
     polar = [(rng.integers(0, 4), rng.integers(0, grid.n_theta), k) for k in (0, grid.n_phi - 1)]
     cells = [(rng.integers(0, min(grid.n_rho, 64)), rng.integers(0, grid.n_theta),
@@ -286,7 +286,7 @@ def test_a_cells_shadow_holds_every_direction_meeting_it(grid, sensor):
         points = _inside(rng, grid, i, j, k, 300)
         bins = np.empty(points.shape[0], dtype=np.int64)
         boxes = np.empty((6, 4))
-        kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins), np.empty(6, np.int64),
+        coherent.bin_rays(origin, points, q, 1, bins, np.empty_like(bins), np.empty(6, np.int64),
                          boxes)
         directions = points - origin
         directions /= np.linalg.norm(directions, axis=1)[:, None]
@@ -294,11 +294,11 @@ def test_a_cells_shadow_holds_every_direction_meeting_it(grid, sensor):
         tight = np.r_[axis, np.arccos(np.clip(directions @ axis, -1, 1)).max()]
         for rays in (everywhere, tight):
             limit = np.full(6 * q * q, 200, dtype=np.uint8)
-            kernels._mark_shadow(*origin, args, i, j, k, q, rays, boxes, corners, limit)
+            coherent._mark_shadow(*origin, args, i, j, k, q, rays, boxes, corners, limit)
             assert (limit[bins] == i).all(), (i, j, k)
         # Directions of the cone around another axis do not meet the cell: nothing lowered.
         limit = np.full(6 * q * q, 200, dtype=np.uint8)
-        kernels._mark_shadow(*origin, args, i, j, k, q, np.r_[-axis, 0.1], boxes, corners,
+        coherent._mark_shadow(*origin, args, i, j, k, q, np.r_[-axis, 0.1], boxes, corners,
                              limit)
         assert (limit == 200).all() or tight[3] > 1.0
 
@@ -311,20 +311,20 @@ def test_the_bins_limits_are_the_same_on_any_number_of_threads(scan, monkeypatch
     grid, sensor, forward, focal = SCANS[scan]
     points = _camera_scan(np.random.default_rng(71), np.asarray(sensor), forward, focal=focal)
     calls = []
-    mark_candidates = kernels.mark_candidates
+    mark_candidates = coherent.mark_candidates
 
     def recording(*args):
         mark_candidates(*args)
         calls.append(tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args))
 
-    monkeypatch.setattr(occ._kernels, "mark_candidates", recording)
+    monkeypatch.setattr(occ._coherent, "mark_candidates", recording)
     _flags(grid, sensor, points)
     monkeypatch.undo()
     (origin, args, masks, skip, q, rays, view, boxes, limit, _), = calls
     want = limit.copy()
     assert 0 < np.count_nonzero(want < skip) < want.size
     limit[:] = 0  # every bin set again
-    kernels.mark_candidates(origin, grid.kernel_args(), masks, skip, q, rays, view, boxes, limit,
+    coherent.mark_candidates(origin, grid.kernel_args(), masks, skip, q, rays, view, boxes, limit,
                             1)
     np.testing.assert_array_equal(limit, want)
     for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
@@ -332,7 +332,7 @@ def test_the_bins_limits_are_the_same_on_any_number_of_threads(scan, monkeypatch
         try:
             for workers in (1, 2, 7):
                 limit[:] = 0
-                kernels.mark_candidates(origin, grid.kernel_args(), masks, skip, q, rays, view,
+                coherent.mark_candidates(origin, grid.kernel_args(), masks, skip, q, rays, view,
                                         boxes, limit, workers)
                 np.testing.assert_array_equal(limit, want)
         finally:
@@ -340,11 +340,11 @@ def test_the_bins_limits_are_the_same_on_any_number_of_threads(scan, monkeypatch
 
 
 def _bin_cone(bins, q, workers=None):
-    """``kernels.ray_cone`` of a list of cube-map bins (one worker per thread by default)."""
+    """``coherent.ray_cone`` of a list of cube-map bins (one worker per thread by default)."""
     first = np.ones(6 * q * q, dtype=np.int64)  # 1 row, in none of the bins
     first[bins] = 0  # but in these
     cone = np.empty(4)
-    kernels.ray_cone(first, 1, q, workers or numba.get_num_threads(), cone)
+    coherent.ray_cone(first, 1, q, workers or numba.get_num_threads(), cone)
     return cone
 
 
@@ -394,7 +394,7 @@ def test_rays_are_binned_by_their_cube_map_face_and_position():
     for q, coarse_q in ((306, 153), (7, 3), (1, 1)):
         bins, coarse = (np.empty(points.shape[0], dtype=np.int64) for _ in range(2))
         boxes = np.empty((6, 4))
-        kernels.bin_rays(origin, points, q, coarse_q, bins, coarse,
+        coherent.bin_rays(origin, points, q, coarse_q, bins, coarse,
                          np.empty(6 * coarse_q * coarse_q, dtype=np.int64), boxes)
         np.testing.assert_array_equal(bins, _cube_bins(offsets, q))
         np.testing.assert_array_equal(coarse, _cube_bins(offsets, coarse_q))
@@ -413,14 +413,14 @@ def test_each_coarse_bins_first_ray_is_its_sample_on_any_number_of_threads():
                 bins, coarse = (np.empty(points.shape[0], dtype=np.int64) for _ in range(2))
                 first = np.full(6 * coarse_q * coarse_q, -7, dtype=np.int64)
                 boxes = np.empty((6, 4))
-                kernels.bin_rays(origin, points, q, coarse_q, bins, coarse, first, boxes)
+                coherent.bin_rays(origin, points, q, coarse_q, bins, coarse, first, boxes)
                 np.testing.assert_array_equal(boxes, _cube_boxes(points - origin))
                 want = np.full(first.shape[0], points.shape[0])
                 ray = np.flatnonzero(coarse >= 0)
                 np.minimum.at(want, coarse[ray], ray)
                 np.testing.assert_array_equal(first, want)
                 assert np.all((coarse == -1) == np.all(points == origin, axis=1))
-                sample = np.array([kernels.is_sample(coarse, first, r)
+                sample = np.array([coherent.is_sample(coarse, first, r)
                                    for r in range(points.shape[0])])
                 assert np.count_nonzero(sample) == np.count_nonzero(want < points.shape[0])
         finally:
@@ -435,7 +435,7 @@ def test_the_ray_cone_holds_every_ray():
                               else (0.0, 1.0, 0.0))
         for q in (8, 101, 306):
             bins = np.empty(points.shape[0], dtype=np.int64)
-            kernels.bin_rays(origin, points, q, 1, bins, np.empty_like(bins),
+            coherent.bin_rays(origin, points, q, 1, bins, np.empty_like(bins),
                              np.empty(6, np.int64), np.empty((6, 4)))
             cone = _bin_cone(np.unique(bins), q)
             directions = points - origin
@@ -450,7 +450,7 @@ def test_the_scans_extent_is_the_box_of_every_strideth_ray():
     points[::5] = origin  # no rays
     for stride in (1, 7, 64):
         boxes = np.empty((6, 4))
-        kernels.ray_extent(origin, points, stride, boxes)
+        coherent.ray_extent(origin, points, stride, boxes)
         np.testing.assert_array_equal(boxes, _cube_boxes(points[::stride] - origin))
 
 
@@ -477,7 +477,7 @@ def test_the_ray_cone_is_the_same_on_any_number_of_threads():
     # spread over every face, summed on 1 and 2 threads by 1 to 7 workers.
     rng = np.random.default_rng(59)
     q = 64
-    bins = np.unique(rng.integers(0, 6 * q * q, 30 * kernels.CONE_BLOCK))
+    bins = np.unique(rng.integers(0, 6 * q * q, 30 * coherent.CONE_BLOCK))
     cones = []
     for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
         numba.set_num_threads(threads)
@@ -486,7 +486,7 @@ def test_the_ray_cone_is_the_same_on_any_number_of_threads():
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
     for cone in cones[1:]:
         np.testing.assert_array_equal(cone, cones[0])
-    centres = np.array([kernels._bin_corner(b, q, 0.5, 0.5) for b in bins[:50]])
+    centres = np.array([coherent._bin_corner(b, q, 0.5, 0.5) for b in bins[:50]])
     assert np.all(np.arccos(np.clip(centres @ cones[0][:3], -1, 1)) <= cones[0][3])
 
 
@@ -520,7 +520,7 @@ def test_a_column_with_a_ray_in_it_is_in_view(grid, sensor):
         axis = directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))
         cone = np.r_[axis, np.arccos(np.clip(directions @ axis, -1, 1)).max()]
         view = np.empty(grid.n_theta * grid.n_phi, dtype=np.uint8)
-        kernels.columns_in_view(origin, grid.kernel_args(), cone, view)
+        coherent.columns_in_view(origin, grid.kernel_args(), cone, view)
         assert view[j * grid.n_phi + k] == 1
         assert view.mean() < 1.0 or cone[3] > 1.0  # and it does pass some columns over
 
@@ -540,7 +540,7 @@ def test_near_masks_name_every_flagged_cell_below_skip(n_rho, skip):
         free[:n_cells] = (rng.random(n_cells) < density) * rng.integers(1, 3, n_cells)
         view = (rng.random(n_columns) < 0.8).astype(np.uint8)
         masks = np.empty(n_columns, dtype=np.uint64)
-        kernels.near_masks(words, n_rho, skip, view, masks, workers)
+        coherent.near_masks(words, n_rho, skip, view, masks, workers)
         flagged = (free[:n_cells] != 0).reshape(n_columns, n_rho)[:, :skip]
         want = (flagged * (1 << np.arange(skip, dtype=np.uint64))).sum(axis=1, dtype=np.uint64)
         np.testing.assert_array_equal(masks, np.where(view != 0, want, 0).astype(np.uint64))
@@ -575,7 +575,7 @@ def test_apply_scan_updates_each_flagged_cell_in_view_once_and_clears_the_flags(
         want[hit] = np.minimum(wide[hit] + log_hit, log_max)
         want = want.astype(np.float32)
         got = start.copy()
-        kernels.apply_scan(got, free, words, hits, n_rho, view, log_hit, log_miss, log_min,
+        update.apply_scan(got, free, words, hits, n_rho, view, log_hit, log_miss, log_min,
                            log_max, workers)
         np.testing.assert_array_equal(got, want)
         assert not words.any()  # ready for the next scan

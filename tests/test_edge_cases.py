@@ -12,7 +12,7 @@ from singular import CLASSES, singular_rays
 
 import logsph_trace as lt
 from logsph_trace import _batching, _validate
-from logsph_trace.kernels import exact, locate
+from logsph_trace.kernels import geometry, locate
 
 
 @pytest.fixture(scope="module")
@@ -198,7 +198,7 @@ def test_segment_count_respects_the_loop_bound():
 @pytest.mark.parametrize("name", sorted(GRIDS))
 def test_the_bound_pass_is_never_below_a_rays_segments(name):
     # The parallel paths and the GPU size each ray's region by its bound
-    # (_batching.bound_counts on the CPU, exact.ray_bound on the GPU): one below
+    # (_batching.bound_counts on the CPU, geometry.ray_bound on the GPU): one below
     # the segments would overwrite the next ray. Random rays, near-singular
     # ones, rays from the centre and the y axis along the edges' directions,
     # and rays stopped at a random t_max.
@@ -220,10 +220,10 @@ def test_the_bound_pass_is_never_below_a_rays_segments(name):
     for stop in (None, t_max):
         counts = lt.trace_many(grid, origins, directions, t_max=stop, parallel=False).counts
         assert np.all(bounds >= counts), np.flatnonzero(bounds < counts)[:10]
-    assert np.all(bounds <= exact.max_segments(*grid.shape))
+    assert np.all(bounds <= geometry.max_segments(*grid.shape))
     # The GPU's per-ray function gives the same bounds.
     args = grid.kernel_args()
     per_log = locate.per_log_of(grid.rho_edges, grid.rho_kind)
     lookups = np.zeros(8, dtype=np.int64)
-    assert [exact.ray_bound(origins, directions, row, args, per_log, lookups)
+    assert [geometry.ray_bound(origins, directions, row, args, per_log, lookups)
             for row in range(len(origins))] == bounds.tolist()

@@ -33,7 +33,7 @@ def test_threads_sharing_a_map_take_turns(monkeypatch):
     from logsph_trace import occupancy as module
 
     spans = []
-    kernel = module._kernels.mark_radial
+    kernel = module._radial.mark_radial
 
     def slow(*args):
         start = time.perf_counter()
@@ -41,7 +41,7 @@ def test_threads_sharing_a_map_take_turns(monkeypatch):
         kernel(*args)
         spans.append((start, time.perf_counter()))
 
-    monkeypatch.setattr(module._kernels, "mark_radial", slow)
+    monkeypatch.setattr(module._radial, "mark_radial", slow)
     shared = lt.OccupancyGrid(GRID)
     threads = [threading.Thread(target=shared.integrate, args=(_scan(), [0.0, 0.0, 0.0]))
                for _ in range(2)]

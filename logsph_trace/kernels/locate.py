@@ -31,7 +31,7 @@ HALF_PI = 0.5 * np.pi
 # Rays per block in the batch kernels: each block allocates its scratch once.
 BLOCK = 256
 # Elevation cones timed at a time by the exact kernel's phi crossings
-# (``exact._branch_times``). On the CPU a grid's cone arrays carry
+# (``crossings._branch_times``). On the CPU a grid's cone arrays carry
 # ``CONE_BLOCK - 1`` zeros past the last cone (``GridArrays``), so that every
 # block computes all of its lanes in one vector pass from any first cone.
 CONE_BLOCK = 8
@@ -59,7 +59,7 @@ class GridArrays(NamedTuple):
     phi_sin: np.ndarray
     phi_cos: np.ndarray
     # The cones from phi_flat_from up to (not including) phi_flat_to lie within
-    # ``exact.FLAT_TAN2`` of the plane y = 0 (``exact._flat_cone_times``).
+    # ``crossings.FLAT_TAN2`` of the plane y = 0 (``crossings._flat_cone_times``).
     phi_flat_from: int = 0
     phi_flat_to: int = 0
 

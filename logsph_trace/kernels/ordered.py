@@ -299,3 +299,22 @@ def advance(chunk, waiting, worker, side, room, first_row, last_row, chunk_rays,
         return chunk, 1 - side, -1
     touch_ahead(load_ordered(counter, 0), workers, starts, fresh, cells, t_enter, t_exit)
     return chunk, 1 - side, take(counter, counts.shape[0])
+
+
+# The parallel loops whose items cost unequal amounts (rays walked from
+# different shells, columns in and out of view) are not cut into one equal
+# share per thread, Numba's schedule: the costly items lie together, where
+# the scan looks, and would fall to a few of the shares. Instead each
+# thread, a worker, takes blocks of items in turn from a counter
+# (``ordered.take``), about ``TAKES_PER_WORKER`` blocks each.
+TAKES_PER_WORKER = 64
+
+
+@jit(inline="always")
+def in_turn(n_items, workers, most):
+    """Blocks of ``n_items`` for ``workers`` to take in turn: (items a block,
+    blocks, the counter to ``ordered.take`` them from). A block holds
+    ``most`` items, or fewer down to 16, so that each worker takes about
+    ``TAKES_PER_WORKER`` of them."""
+    step = max(min(most, n_items // (TAKES_PER_WORKER * workers)), 16)
+    return step, (n_items + step - 1) // step, np.zeros(1, dtype=np.int64)

@@ -14,7 +14,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit, jit_twins
-from .exact import line_geometry
+from .geometry import line_geometry
 from .locate import BLOCK, phi_zone, rho_zone, theta_zone
 
 
@@ -38,7 +38,7 @@ def thibaudeau_ray(origins, directions, row, grid, breaks, cells, t_enter, t_exi
     n_phi = phi_edges.shape[0] - 1
     # Every equation is solved about the line's closest point c to the centre
     # (u = t - t_c), which keeps the roots accurate for lines through or near
-    # the centre (see ``exact.line_geometry``).
+    # the centre (see ``geometry.line_geometry``).
     t_c, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
     outer = rho_edges[n_rho] ** 2 - h2
     if outer < 0.0 or t_c + math.sqrt(outer) <= 0.0:

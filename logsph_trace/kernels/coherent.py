@@ -1,12 +1,12 @@
-"""Occupancy kernels (``@jit`` only): integrate a scan, first-occupied probabilities.
+"""The coherent scan: a scan's rays binned by direction, most of them never walked.
 
-A scan's rays are walked on all threads at once into one array of flags, a
-byte per cell: a walk only ever stores ``FREE`` there, so threads that
-store to the same cell store the same byte, with relaxed atomic stores
-(``atomic.store_relaxed``: a defined result). A second parallel pass over
-cells then applies the update once per flagged cell. The other values that
-threads share are minima and maxima (``atomic.lower_to``, ``raise_to``) or
-stores of one value, so no result depends on the number of threads.
+Rays of a depth image that end in one cell's column after leaving the
+sensor's cell agree on the cells they cross. ``bin_rays`` bins the rays by
+direction on a cube around the sensor, ``mark_scan`` walks one ray of each
+bin (its sample) and those the sample does not vouch for, and the cells
+the others could cross are found by the columns in view (``columns_in_view``,
+``near_masks``, ``mark_candidates``). docs/integration.md tells the whole
+story; ``OccupancyGrid.integrate`` drives it.
 """
 
 import math
@@ -15,361 +15,24 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .atomic import exchange, load_relaxed, lower_to, raise_to, store_relaxed
-from .exact import (
-    PHI,
-    THETA,
-    _sphere_time,
-    grid_scratch_size,
-    line_geometry,
-    phi_plan,
-    phi_times,
-    theta_plan,
-    theta_times,
-)
-from .locate import (
-    BLOCK,
-    _last_at_or_below,
-    locate_in,
-    norm3,
-    per_log_of,
-    phi_zone,
-    phi_zone_near,
-    rho_zone,
-    theta_zone,
-    theta_zone_near,
-)
-from .ordered import take
+from .atomic import lower_to, store_relaxed
+from .crossings import _sphere_time
+from .geometry import grid_scratch_size, line_geometry
+from .locate import BLOCK, phi_zone, rho_zone, theta_zone
+from .ordered import in_turn, take
+from .walk import FREE, _direction, _ray_length, walk_ray
 
-# A cell's flag in one scan: a ray crossed it, or ended in it (the hit
-# replaces the byte: it wins over a miss).
-FREE = 1
-HIT = 2
+# ``OccupancyGrid._mark_off_centre`` drives these kernels.
+# Rays from a sensor in the egocentric gap cross most of their cells near it,
+# where neighbouring rays cross the same cells. A sample of the rays is walked
+# whole; each direction bin then gets a limit below which, by a proof
+# (docs/integration.md), its other rays cross only cells the samples flagged,
+# and those rays are walked from that limit's sphere on.
+#
+# Directions seen from the sensor are indexed by a cube map: face 2 * axis +
+# (1 for the negative half), the axis of the largest |component| (ties to the
+# earlier axis), and on it (u, v), the two other components over that one.
 
-# The parallel loops whose items cost unequal amounts (rays walked from
-# different shells, columns in and out of view) are not cut into one equal
-# share per thread, Numba's schedule: the costly items lie together, where
-# the scan looks, and would fall to a few of the shares. Instead each
-# thread, a worker, takes blocks of items in turn from a counter
-# (``ordered.take``), about ``TAKES_PER_WORKER`` blocks each.
-TAKES_PER_WORKER = 64
-
-
-@jit(inline="always")
-def in_turn(n_items, workers, most):
-    """Blocks of ``n_items`` for ``workers`` to take in turn: (items a block,
-    blocks, the counter to ``ordered.take`` them from). A block holds
-    ``most`` items, or fewer down to 16, so that each worker takes about
-    ``TAKES_PER_WORKER`` of them."""
-    step = max(min(most, n_items // (TAKES_PER_WORKER * workers)), 16)
-    return step, (n_items + step - 1) // step, np.zeros(1, dtype=np.int64)
-
-
-@jit(inline="always")
-def _in_shell(r2, i, rho_sq):
-    """Whether rho^2 = ``r2`` lies in zone ``i`` (-1: the gap; n_rho: beyond)."""
-    above = i < 0 or r2 >= rho_sq[i]
-    below = i >= rho_sq.shape[0] - 1 or r2 < rho_sq[i + 1]
-    return above and below
-
-
-@jit(inline="always")
-def _left_within_snap(t_now, t_next, snap, t_closest, h2, i, rho_sq):
-    """Whether the cell in shell ``i`` entered at ``t_now`` is left by ``t_now + snap``
-    (a sliver the exact trace absorbs): the stretch ends or the shell changes."""
-    if t_next - t_now <= snap:
-        return True
-    return not _in_shell((t_now + snap - t_closest) ** 2 + h2, i, rho_sq)
-
-
-@jit(inline="always")
-def _near_either_edge(a, b, sines, cosines, low, high, within):
-    """Whether the point (a, b) of a half-plane through the axis lies within
-    ``within`` of the line at angle ``low`` or ``high`` (their ``sines`` and
-    ``cosines``): ``|a cos - b sin|``, its distance from each."""
-    return (abs(a * cosines[low] - b * sines[low]) <= within
-            or abs(a * cosines[high] - b * sines[high]) <= within)
-
-
-@jit(inline="always")
-def _near_theta_face(x, z, zone, within, grid):
-    """Whether (x, ., z) lies within ``within`` of a half-plane's plane bounding
-    azimuthal ``zone`` (``n_theta``: the rest of the turn of a partial range),
-    where a lookup and a trace may round to different sides."""
-    n = grid.theta_sin.shape[0] - 1
-    return _near_either_edge(x, z, grid.theta_sin, grid.theta_cos, zone if zone < n else n,
-                             zone + 1 if zone < n else 0, within)
-
-
-@jit(inline="always")
-def _near_phi_face(x, y, z, zone, within, grid):
-    """Whether (x, y, z) lies within ``within`` of a cone bounding elevation
-    ``zone`` (-1, ``n_phi``: below and above a partial range); see
-    ``_near_theta_face``."""
-    n = grid.phi_sin.shape[0] - 1
-    return _near_either_edge(y, math.sqrt(x * x + z * z), grid.phi_sin, grid.phi_cos,
-                             max(zone, 0), min(zone + 1, n), within)
-
-
-@jit
-def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zones, lookups,
-             free, skip):
-    """Flag the cells one sensor ray (unit direction) crosses up to ``t_max`` in
-    ``free`` (indexed column-major, see ``apply_scan``; ``FREE``, stored
-    relaxed, since other rays may flag the same cell at once); return the
-    index of its end cell when it is a hit that ends inside the region, else
-    -1.
-
-    The angular families are planned and timed by the exact kernel's phases 1
-    and 2 (``theta_plan`` ... ``phi_times``). Between two angular crossings the
-    ray stays in one (theta, phi) column and rho is monotone on each side of
-    the closest approach, so the shells it passes are found by comparing
-    rho^2 = (t - t_c)^2 + h^2 at the crossing with the squared edges: no
-    sphere crossing times and no merge, as only the cells matter here.
-
-    The cells are those of the exact trace: a cell is flagged when the ray
-    leaves it, and only if it stayed longer than the trace's ``snap``. A cell
-    entered or left at an angular crossing is tested by probing rho^2 ``snap``
-    after (or before) the crossing; one entered and left through spheres is a
-    whole shell, a sliver only when it is the dip at the closest approach
-    (its chord is known). A ray through or near the y axis or the centre
-    sweeps many columns within ~h there: those slivers are not flagged.
-    ``ir``, ``jt``, ``kp``: the origin's zones, shared by the scan; ``grid``:
-    the grid's ``GridArrays``. ``skip``: for a ray from the egocentric gap,
-    the shell whose inner sphere the walk may start on (0: where the ray
-    leaves the gap), when the cells below it are known to be flagged by
-    other rays (``occupancy._mark_off_centre``); a ray that ends before it
-    (or within 1e-9 of it) starts on the last sphere it crosses before.
-    Wherever the walk starts, its times are the trace's, from the sensor,
-    and where its start point lies within ``snap`` of a face of its zone, a
-    family is planned from the sensor too (see the comment at the plans).
-    """
-    rho_sq = grid.rho_sq
-    theta_edges = grid.theta_edges
-    theta_full = grid.theta_full
-    phi_edges = grid.phi_edges
-    n_rho = rho_sq.shape[0] - 1
-    n_theta = theta_edges.shape[0] - 1
-    n_phi = phi_edges.shape[0] - 1
-    # The exact kernel's tolerances, from the sensor's own position.
-    slack = 1e-9 * (math.sqrt(rho_sq[n_rho]) + math.sqrt(ox * ox + oy * oy + oz * oz))
-    snap = 1e-3 * slack
-    i = ir
-    jt_sensor = jt
-    kp_sensor = kp
-    # Every time is on the trace's clock, from the sensor: a crossing is then
-    # the very number the trace computes (the same closed form of the same
-    # line), so a ray ending on a face ends where the trace ends it.
-    t_closest, h2, cx, cy, cz = line_geometry(ox, oy, oz, dx, dy, dz)
-    t_start = 0.0  # where the walk starts: (sx, sy, sz)
-    sx = ox
-    sy = oy
-    sz = oz
-    if ir == -1:
-        # In the egocentric gap: start where the ray leaves it, on the inner
-        # sphere. Near the centre a ray sweeps through many angular zones (from
-        # the origin's direction to its own) that hold no cell.
-        t_start = t_closest + math.sqrt(max(rho_sq[0] - h2, 0.0))
-        if t_start >= t_max:
-            return -1  # ends in the gap
-        i = 0
-        if skip > 0:
-            # Outside the gap rho only grows, so each sphere is crossed once:
-            # start on the last one up to ``skip`` crossed before the end.
-            i = min(skip, _last_at_or_below((t_max - t_closest) ** 2 + h2, rho_sq))
-            before_end = t_max * (1.0 - 1e-9)
-            while i > 0:
-                t_sphere = _sphere_time(t_closest, h2, rho_sq[i], True)
-                if t_sphere < before_end:
-                    t_start = t_sphere
-                    break
-                i -= 1
-        sx += t_start * dx
-        sy += t_start * dy
-        sz += t_start * dz
-        # The zones of the last ray walked with these ``lookups`` are guesses.
-        jt = theta_zone_near(sx, sz, lookups[0], grid)
-        kp = phi_zone_near(sx, sy, sz, lookups[1], grid)
-        lookups[0] = jt
-        lookups[1] = kp
-    if h2 >= rho_sq[n_rho]:
-        return -1  # the line misses the outer sphere (or only touches it)
-    t_leave = t_closest + math.sqrt(rho_sq[n_rho] - h2)
-    if t_leave <= t_start:
-        return -1  # beyond rho_max and moving away
-    t_final = min(t_max, t_leave)
-
-    jt_limit = theta_zone_near(dx, dz, lookups[2], grid)
-    kp_limit = phi_zone_near(dx, dy, dz, lookups[3], grid)
-    lookups[2] = jt_limit
-    lookups[3] = kp_limit
-    # Each family is planned from the start point, unless that point lies
-    # within rounding of a face of its zone: there a lookup may round the
-    # other way from the trace, which reaches the point by its crossings from
-    # the sensor (a line through or within ~1e-16 of the centre whose
-    # direction lies on a cone, or one through the y axis on a half-plane).
-    # Such a family is planned from the sensor, as the trace plans it, and the
-    # walk starts after its crossings up to ``t_start``.
-    theta_from_sensor = ir == -1 and _near_theta_face(sx, sz, jt, snap, grid)
-    phi_from_sensor = ir == -1 and _near_phi_face(sx, sy, sz, kp, snap, grid)
-    t_theta = 0.0 if theta_from_sensor else t_start
-    t_phi = 0.0 if phi_from_sensor else t_start
-    jt, th_sigma, th_steps, t_axis = theta_plan(
-        ox if theta_from_sensor else sx, oz if theta_from_sensor else sz, cx, cz, dx, dz, h2,
-        t_closest, t_theta, ox, oz, jt_sensor if theta_from_sensor else jt, jt_limit,
-        theta_edges, theta_full,
-    )
-    kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
-        ox if phi_from_sensor else sx, oy if phi_from_sensor else sy,
-        oz if phi_from_sensor else sz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_phi,
-        kp_sensor if phi_from_sensor else kp, kp_limit, grid, lookups,
-    )
-    n_t = theta_times(ox, oz, dx, dz, t_theta, jt, jt_limit, th_sigma, th_steps, t_axis,
-                      grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times, zones)
-    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_phi, kp, kp_limit, t_turn, ph1_steps,
-                    ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones)
-    zones[THETA, 0] = jt
-    zones[PHI, 0] = kp
-    times[THETA, n_t + 1] = np.inf
-    times[PHI, n_p + 1] = np.inf
-    # Crossings consumed so far per family (a plan from the sensor has some
-    # before the start: the trace crosses them in the gap, or below the start
-    # sphere, where they bound no cell of the walk's).
-    done_t = 0
-    done_p = 0
-    while t_theta < t_start and times[THETA, done_t + 1] <= t_start:
-        done_t += 1
-    while t_phi < t_start and times[PHI, done_p + 1] <= t_start:
-        done_p += 1
-    jt = zones[THETA, done_t]
-    kp = zones[PHI, done_p]
-
-    column = jt * n_phi + kp
-    column_in = jt < n_theta and 0 <= kp < n_phi
-    falling = t_closest > t_start
-    t_now = t_start  # when the current column was entered
-    at_crossing = True  # the current cell was entered at t_now, not through a sphere
-    inward = False  # ... or through a sphere inwards (then leaving outwards is the dip)
-    # One pass per angular crossing, plus the last stretch to t_final. Each
-    # shell walk moves i one way within [-1, n_rho], so n_rho + 1 steps bound it.
-    for _ in range(n_t + n_p + 1):
-        t_theta = times[THETA, done_t + 1]
-        t_phi = times[PHI, done_p + 1]
-        t_next = min(min(t_theta, t_phi), t_final)
-        crossed = -1  # the last sphere crossed in this stretch, if any
-        crossed_out = False  # ... outwards
-        left_flagged = False  # ... and whether the cell it left was flagged
-        if falling:
-            # Inward until the closest approach (or the next crossing before it).
-            r2 = h2 if t_next >= t_closest else (t_next - t_closest) ** 2 + h2
-            for _ in range(n_rho + 1):
-                if i >= 0 and r2 < rho_sq[i]:
-                    # Left through the sphere below: a whole shell, unless it
-                    # was entered at the crossing and left within snap.
-                    left_flagged = column_in and i < n_rho and not (
-                        at_crossing and _left_within_snap(t_now, t_next, snap, t_closest, h2, i,
-                                                          rho_sq))
-                    if left_flagged:
-                        store_relaxed(free, column * n_rho + i, FREE)
-                    crossed = i
-                    crossed_out = False
-                    i -= 1
-                    at_crossing = False
-                    inward = True
-                else:
-                    break
-            falling = t_next < t_closest
-        if not falling:
-            r2 = (t_next - t_closest) ** 2 + h2
-            for _ in range(n_rho + 1):
-                if i < n_rho and r2 >= rho_sq[i + 1]:
-                    if column_in and i >= 0:
-                        if at_crossing:
-                            sliver = _left_within_snap(t_now, t_next, snap, t_closest, h2, i,
-                                                       rho_sq)
-                        else:  # a whole shell, or the dip: its chord
-                            sliver = inward and 4.0 * (rho_sq[i + 1] - h2) <= snap * snap
-                        if not sliver:
-                            store_relaxed(free, column * n_rho + i, FREE)
-                    left_flagged = column_in and i >= 0 and not sliver
-                    crossed = i + 1
-                    crossed_out = True
-                    i += 1
-                    at_crossing = False
-                    inward = False
-                else:
-                    break
-            if i == n_rho and t_next < t_final:
-                return -1  # past rho_max and moving away for good
-        # The cell is left at t_next: by an angular crossing or the end of the ray.
-        cell_in = column_in and 0 <= i < n_rho
-        if cell_in:
-            if at_crossing:
-                stays = t_next - t_now > snap
-            else:
-                stays = _in_shell((t_next - snap - t_closest) ** 2 + h2, i, rho_sq)
-            if stays:
-                store_relaxed(free, column * n_rho + i, FREE)
-        if t_next >= t_final:
-            if not (is_hit and t_max <= _sphere_time(t_closest, h2, rho_sq[n_rho], True)):
-                return -1  # no hit, or the ray leaves the region before its end
-            # The trace stops at t_max by comparing its sphere crossing times
-            # with it, which rho^2 at t_max only approximates: on a sphere,
-            # follow the times. A sphere the trace does not cross before t_max
-            # leaves it in the cell before; one it does cross starts a sliver,
-            # which ends the trace without a hit.
-            if crossed >= 0 and _sphere_time(t_closest, h2, rho_sq[crossed],
-                                             crossed_out) >= t_max:
-                before = crossed - 1 if crossed_out else crossed
-                if left_flagged and 0 <= before < n_rho:
-                    return column * n_rho + before
-                return -1
-            outward = not falling
-            ahead = i + 1 if outward else i
-            if 0 <= ahead <= n_rho and _sphere_time(t_closest, h2, rho_sq[ahead],
-                                                    outward) < t_max:
-                return -1
-            if cell_in and stays:
-                return column * n_rho + i
-            return -1
-        # Flag adds, not a branch on which family crosses (a coin toss per crossing).
-        theta_first = t_theta <= t_phi
-        done_t += theta_first
-        done_p += not theta_first
-        column = zones[THETA, done_t] * n_phi + zones[PHI, done_p]
-        column_in = zones[THETA, done_t] < n_theta and 0 <= zones[PHI, done_p] < n_phi
-        t_now = t_next
-        at_crossing = True
-        inward = False
-    return -1
-
-
-@jit(inline="always")
-def sensor_ray(points, row, ox, oy, oz, max_range):
-    """Ray ``row`` of a scan from (ox, oy, oz): its unit direction, its length cut
-    at ``max_range`` and whether it ends in a hit; a zero length (a point at
-    the sensor) is no ray. The direction is the offset over its ``norm3``, as
-    ``trace_many`` normalises it."""
-    length, distance, is_hit = _ray_length(points, row, ox, oy, oz, max_range)
-    if length == 0.0:
-        return 0.0, 0.0, 0.0, 0.0, False, False
-    dx, dy, dz = _direction(points, row, ox, oy, oz, length)
-    return dx, dy, dz, distance, is_hit, True
-
-
-@jit(inline="always")
-def _ray_length(points, row, ox, oy, oz, max_range):
-    """Ray ``row``'s offset length (0: no ray), that length cut at ``max_range``,
-    and whether the ray ends in a hit (``sensor_ray``)."""
-    length = norm3(points[row, 0] - ox, points[row, 1] - oy, points[row, 2] - oz)
-    return length, min(length, max_range), length <= max_range
-
-
-@jit(inline="always")
-def _direction(points, row, ox, oy, oz, length):
-    """The unit direction of ray ``row`` of ``sensor_ray``, its offset's ``length`` given."""
-    return ((points[row, 0] - ox) / length, (points[row, 1] - oy) / length,
-            (points[row, 2] - oz) / length)
 
 
 # An end point farther than this from every face of its cell (a fraction of
@@ -484,7 +147,11 @@ def _stays_in_column(x1, y1, z1, x2, y2, z2, dx, dy, dz, length, j, k, margin, g
 # Which rays ``mark_scan`` walks: every one, the coherent scan's samples (the
 # first ray of each coarse bin), or the others.
 WALK_ALL = 0
+
+
 WALK_SAMPLES = 1
+
+
 WALK_OTHERS = 2
 
 
@@ -587,18 +254,6 @@ def mark_scan(origin, points, max_range, grid, free, hits, walk, coarse, first, 
                                      times, zones, lookups, free, start)
             block = take(counter, n_blocks)
     return skipped, ended, straight
-
-
-# ---- The coherent scan (``occupancy._mark_off_centre``) -------------------
-# Rays from a sensor in the egocentric gap cross most of their cells near it,
-# where neighbouring rays cross the same cells. A sample of the rays is walked
-# whole; each direction bin then gets a limit below which, by a proof
-# (docs/integration.md), its other rays cross only cells the samples flagged,
-# and those rays are walked from that limit's sphere on.
-#
-# Directions seen from the sensor are indexed by a cube map: face 2 * axis +
-# (1 for the negative half), the axis of the largest |component| (ties to the
-# earlier axis), and on it (u, v), the two other components over that one.
 
 
 @jit(inline="always")
@@ -914,10 +569,16 @@ def near_masks(words, n_rho, skip, view, masks, workers):
 
 # The largest angle between a cube-map face's axis and a direction of that face.
 FACE_REACH = math.acos(1.0 / math.sqrt(3.0))
+
+
 # A cell's shadow is bounded through its angular patch split into parts of at
 # most this span (theta + phi, radians), and at most MAX_PARTS x MAX_PARTS.
 SUBPATCH_SPAN = 0.05
+
+
 MAX_PARTS = 12
+
+
 MAX_CORNERS = 2 * (MAX_PARTS + 1) ** 2
 
 
@@ -1112,247 +773,3 @@ def _mark_column_candidates(ox, oy, oz, grid, masks, skip, q, j, k, below, pole_
     for i in range(skip):
         if (candidates >> np.uint64(i)) & one:
             _mark_shadow(ox, oy, oz, grid, i, j, k, q, rays, boxes, corners, limit)
-
-
-@jit(inline="always")
-def _update(log_odds, cell, hit, free, log_hit, log_miss, log_min, log_max):
-    """OctoMap's update of one cell: a hit wins over a miss; clamped.
-
-    Summed in float64 and rounded once to the map's float32, whatever the
-    caller's promotion rules (numpy 2 would add a Python float to a float32
-    scalar in float32).
-    """
-    if hit:
-        log_odds[cell] = min(np.float64(log_odds[cell]) + log_hit, log_max)
-    elif free:
-        log_odds[cell] = max(np.float64(log_odds[cell]) + log_miss, log_min)
-
-
-@jit(inline="always")
-def _apply_word(log_odds, words, word, n_rho, n_columns, log_hit, log_miss, log_min, log_max):
-    """``apply_scan`` for the eight cells of ``word``: update those flagged,
-    then clear the word."""
-    any_bits = words[word]
-    if any_bits == 0:
-        return
-    n_cells = n_columns * n_rho
-    for index in range(word * 8, min(word * 8 + 8, n_cells)):
-        # Byte ``index - 8 word`` of the word (little-endian, as every
-        # platform Numba runs on): the cell's flag.
-        bits = np.uint8((any_bits >> np.uint64(8 * (index - word * 8))) & np.uint64(0xFF))
-        if bits != 0:
-            i = index % n_rho
-            _update(log_odds, i * n_columns + index // n_rho, (bits & HIT) != 0,
-                    (bits & FREE) != 0, log_hit, log_miss, log_min, log_max)
-    # Cleared only here, for words that held flags: clearing every word
-    # read made the pass branch on every word, most of them zero (apply
-    # 1.5 -> 2.6 ms on one thread, table scan 10 cm off).
-    words[word] = 0
-
-
-@jit(inline="always")
-def _first_word_of(column, n_rho, view):
-    """The first word ``column``'s walk in ``apply_scan`` owns: a word that
-    begins in an earlier column belongs to the first column in view it
-    touches."""
-    word = column * n_rho // 8
-    for earlier in range(word * 8 // n_rho, column):
-        if view[earlier]:
-            return word + 1
-    return word
-
-
-@jit(parallel=True)
-def apply_scan(log_odds, free, words, hits, n_rho, view, log_hit, log_miss, log_min, log_max,
-               workers):
-    """OctoMap's update, once per cell per scan: a hit wins over a miss; clamped.
-
-    ``free`` is indexed column-major, ``(j * n_phi + k) * n_rho + i``, so that
-    a ray's run of shells in one column is one cache line rather than a page
-    apart each (the map is ``(i * n_theta + j) * n_phi + k``). The walk only
-    stores to it: a load-test-store per cell to list the cells it met cost
-    more than this pass. ``words`` is ``free`` seen as uint64 (padded to a
-    multiple of 8 bytes): most of a scan's cells are untouched, and eight at
-    a time are skipped with one test.
-
-    Only the columns in ``view`` (a byte per column) are read: no ray of the
-    scan meets the others, so their flags are zero. A word that spans two
-    columns is read once, by the first of them in view. The ``workers`` take
-    blocks of columns in turn (``in_turn``): the columns in view lie
-    together.
-
-    The hits go in first, on all threads: ``HIT`` replaces the byte, since a
-    hit wins over a miss, and rays that end in one cell store the same value
-    there (``atomic.store_relaxed``). The flags are left zero, ready for the
-    next scan: only words that were not are written.
-    """
-    n_rays = hits.shape[0]
-    n_cells = log_odds.shape[0]
-    for block in prange((n_rays + BLOCK - 1) // BLOCK):
-        for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            if 0 <= hits[ray] < n_cells:  # -1: no hit (the bound: no store outside the map)
-                store_relaxed(free, hits[ray], HIT)
-    n_columns = log_odds.shape[0] // n_rho
-    step, n_blocks, counter = in_turn(n_columns, workers, BLOCK)
-    for worker in prange(workers):
-        block = take(counter, n_blocks)
-        while block >= 0:
-            for column in range(block * step, min(n_columns, (block + 1) * step)):
-                if view[column]:
-                    for word in range(_first_word_of(column, n_rho, view),
-                                      ((column + 1) * n_rho - 1) // 8 + 1):
-                        _apply_word(log_odds, words, word, n_rho, n_columns, log_hit, log_miss,
-                                    log_min, log_max)
-            block = take(counter, n_blocks)
-
-
-@jit(inline="always")
-def radial_ray(points, row, max_range, grid, per_log, guesses):
-    """Ray ``row`` of a scan from the grid's origin (see ``mark_radial``): its
-    column (``j * n_phi + k``, or -1 when it misses the region), how many
-    shells from the centre it frees, and its hit cell's map index or -1.
-
-    ``guesses``: the (theta, phi, rho) zones of the ray before, tried first
-    (``theta_zone_near``); they are updated to this ray's.
-    """
-    rho_edges = grid.rho_edges
-    n_rho = rho_edges.shape[0] - 1
-    n_theta = grid.theta_edges.shape[0] - 1
-    n_phi = grid.phi_edges.shape[0] - 1
-    x, y, z, distance, is_hit, is_ray = sensor_ray(points, row, 0.0, 0.0, 0.0, max_range)
-    if not is_ray:
-        return -1, 0, -1
-    j = theta_zone_near(x, z, guesses[0], grid)
-    k = phi_zone_near(x, y, z, guesses[1], grid)
-    guesses[0] = j
-    guesses[1] = k
-    if j >= n_theta or k < 0 or k >= n_phi:
-        return -1, 0, -1  # outside the angular range: the ray never enters the region
-    shell = guesses[2]  # -1: gap, n_rho: beyond
-    if not (0 <= shell < n_rho and rho_edges[shell] <= distance < rho_edges[shell + 1]):
-        shell = locate_in(distance, rho_edges, grid.rho_kind, per_log)
-        guesses[2] = shell
-    if 0 <= shell < n_rho and distance == rho_edges[shell]:
-        # The ray stops on the sphere below its shell, which the trace
-        # only crosses before t_max: it ends in the cell below.
-        shell -= 1
-        hit = is_hit and shell >= 0
-        free = shell if hit else shell + 1
-    elif 0 <= shell < n_rho and distance - rho_edges[shell] <= 1e-12 * rho_edges[n_rho]:
-        shell -= 1  # the end cell is a sliver (shorter than the trace's snap): no hit
-        hit = False
-        free = shell + 1
-    else:
-        hit = is_hit and 0 <= shell < n_rho
-        free = min(shell, n_rho) if hit else min(shell + 1, n_rho)
-    return j * n_phi + k, free, (shell * n_theta + j) * n_phi + k if hit else -1
-
-
-@jit(parallel=True)
-def mark_radial(points, max_range, grid, free_extent, hits, workers):
-    """The sensor at the grid's origin: every ray is radial, so its cells are one
-    (theta, phi) column, free up to the shell holding its end point.
-
-    The column is that of the unit direction (``sensor_ray``), exactly as
-    ``trace_many`` would trace it: a point on a cell's edge may round to
-    either side, the direction decides. An end cell the ray enters less than
-    the exact trace's ``snap`` before its (cut) length is a
-    sliver, neither free nor hit; a ray ending exactly on a sphere ends in
-    the cell below it, as the trace (whose crossing time ``sqrt(rho^2)`` is
-    ``rho`` itself) stops before crossing. ``free_extent`` (n_theta *
-    n_phi,) int64 gets, per column, how many shells from the centre are
-    free: raised by all threads (``raise_to``; a maximum, so the same on any
-    number of them), once per run of rays in one column, since neighbouring
-    pixels mostly share it. ``workers`` (a worker per thread) take blocks of
-    rays in turn (``in_turn``); ``hits[row]`` gets the map index of ray
-    ``row``'s hit cell, or -1. Three lookups per ray instead of a traversal
-    (``radial_ray``).
-    """
-    n_rays = points.shape[0]
-    rho_edges, rho_kind = grid.rho_edges, grid.rho_kind
-    # Log shells' constant logarithm, taken once (it was a third of a ray's time).
-    per_log = per_log_of(rho_edges, rho_kind)
-    # Up to 2,048 rays a block: on few threads, longer runs of neighbouring
-    # rays (blocks of 256 made the table scan 2-4% slower on 2 threads).
-    step, n_blocks, counter = in_turn(n_rays, workers, 8 * BLOCK)
-    for worker in prange(workers):
-        guesses = np.empty(3, dtype=np.int64)
-        _radial_blocks(points, max_range, grid, per_log, free_extent, hits, step, n_blocks,
-                       counter, guesses)
-
-
-@jit
-def _radial_blocks(points, max_range, grid, per_log, free_extent, hits, step, n_blocks, counter,
-                   guesses):
-    """One worker of ``mark_radial``: blocks of ``step`` rays, taken in turn until none is left.
-
-    A function of its own, called by the parallel loop rather than written
-    in it: Numba compiles a parallel loop's body twice, and this one took
-    1.4 s more to compile inside it. ``guesses``: the worker's scratch of 3.
-    """
-    n_rays = points.shape[0]
-    block = take(counter, n_blocks)
-    while block >= 0:
-        guesses[:] = -1
-        run_column = -1  # the run's column (-1: none) and its largest extent
-        run_free = 0
-        for row in range(block * step, min(n_rays, (block + 1) * step)):
-            column, free, hits[row] = radial_ray(points, row, max_range, grid, per_log,
-                                                 guesses)
-            if column != run_column:
-                if run_column >= 0:
-                    raise_to(free_extent, run_column, run_free)
-                run_column = column
-                run_free = free
-            elif free > run_free:
-                run_free = free
-        if run_column >= 0:
-            raise_to(free_extent, run_column, run_free)
-        block = take(counter, n_blocks)
-
-
-@jit(parallel=True)
-def apply_radial(log_odds, free_extent, hits, hit_mask, n_theta, n_phi, log_hit, log_miss,
-                  log_min, log_max, workers):
-    """``apply_scan`` for the radial case: cell (i, j, k) is free if i is below its
-    column's free extent (``mark_radial``); ``hit_mask`` (n_cells,) uint8,
-    zero, marks the hit cells so a hit wins and each is updated once. Only
-    the columns' free runs and the hits are visited, not the whole map.
-
-    All three passes run on all threads; the columns, whose free runs lie
-    together where the scan looks, in blocks that the ``workers`` take in
-    turn (``in_turn``). Rays that end in one cell store the same mark
-    (``atomic.store_relaxed``); in the last pass exactly one of them takes it
-    back (``atomic.exchange``) and updates the cell, so the map does not
-    depend on the thread count. ``free_extent`` and ``hit_mask`` are left
-    zero, ready for the next scan.
-    """
-    n_rays = hits.shape[0]
-    n_blocks = (n_rays + BLOCK - 1) // BLOCK
-    n_cells = log_odds.shape[0]
-    for block in prange(n_blocks):
-        for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            if 0 <= hits[ray] < n_cells:  # -1: no hit (the bound: no store outside the map)
-                store_relaxed(hit_mask, hits[ray], 1)
-    n_columns = n_theta * n_phi
-    step, n_column_blocks, counter = in_turn(n_columns, workers, BLOCK)
-    for worker in prange(workers):  # the columns in view lie together: blocks in turn
-        column_block = take(counter, n_column_blocks)
-        while column_block >= 0:
-            for column in range(column_block * step, min(n_columns, (column_block + 1) * step)):
-                extent = free_extent[column]
-                if extent > 0:
-                    free_extent[column] = 0
-                for shell in range(extent):
-                    cell = shell * n_columns + column
-                    if hit_mask[cell] == 0:
-                        _update(log_odds, cell, False, True, log_hit, log_miss, log_min,
-                                log_max)
-            column_block = take(counter, n_column_blocks)
-    for block in prange(n_blocks):
-        for ray in range(block * BLOCK, min(n_rays, (block + 1) * BLOCK)):
-            cell = hits[ray]
-            # The load skips the locked exchange for a cell already taken.
-            if (0 <= cell < n_cells and load_relaxed(hit_mask, cell) != 0
-                    and exchange(hit_mask, cell, 0) != 0):
-                _update(log_odds, cell, True, False, log_hit, log_miss, log_min, log_max)
