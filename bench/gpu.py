@@ -38,7 +38,7 @@ from bench.cone import GAZE, ORIGIN, fixation_map
 from bench.occupancy import scans
 from bench.workload import fresh_processes, make_box, make_grid, make_rays, write_results
 from logsph_trace import _cuda
-from logsph_trace.kernels import cartesian
+from logsph_trace.kernels.baselines import amanatides_woo as cartesian
 
 # ---- the Amanatides-Woo baseline, run as the exact backend runs --------------------------------
 

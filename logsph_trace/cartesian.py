@@ -6,7 +6,7 @@ import numpy as np
 
 from . import _validate as validate
 from ._batching import BatchKernels, lap, run_batch
-from .kernels import cartesian as _kernels
+from .kernels.baselines import amanatides_woo as _kernels
 from .traces import Traces
 
 BOX_KERNELS = BatchKernels(_kernels.box_span, _kernels.box_ordered,

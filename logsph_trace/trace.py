@@ -11,8 +11,8 @@ import numpy as np
 from . import _batching as batching
 from . import _validate as validate
 from ._jit import interrupts_after
-from .kernels import bisect as _bisect
-from .kernels import thibaudeau as _thibaudeau
+from .kernels.baselines import algorithm1 as _bisect
+from .kernels.baselines import thibaudeau as _thibaudeau
 from .traces import TraceBuffers
 
 METHODS = ("exact", "bisect", "thibaudeau")

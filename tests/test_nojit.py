@@ -298,8 +298,8 @@ def test_serial_kernels_borrow_their_arrays():
             "first_reach_order", "sparse_cone", "thibaudeau_ray", "thibaudeau_rows"}
     needs_runtime = (".sort(", "np.empty(", "np.zeros(", "np.full(", ".copy(")
     seen = set()
-    for info in pkgutil.iter_modules(kernels.__path__):
-        module = importlib.import_module(f"logsph_trace.kernels.{info.name}")
+    for info in pkgutil.walk_packages(kernels.__path__, "logsph_trace.kernels."):
+        module = importlib.import_module(info.name)
         for name, value in vars(module).items():
             value = getattr(value, "serial", value)  # the serial build of a jit_twins pair
             if (isinstance(value, numba.core.registry.CPUDispatcher)

@@ -19,8 +19,8 @@ a ray grazing a boundary cannot loop forever.
 import numpy as np
 from numba import prange
 
-from .._jit import jit, jit_twins
-from .locate import BLOCK, cell_of_point
+from ..._jit import jit, jit_twins
+from ..locate import BLOCK, cell_of_point
 
 _NONE = 0
 _HALVED = 1

@@ -10,8 +10,8 @@ import math
 import numpy as np
 from numba import prange
 
-from .._jit import jit
-from .ordered import advance, buffer_of, chain, post, rows_of, take
+from ..._jit import jit
+from ..ordered import advance, buffer_of, chain, post, rows_of, take
 
 
 @jit

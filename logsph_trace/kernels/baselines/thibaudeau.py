@@ -13,9 +13,9 @@ import math
 import numpy as np
 from numba import prange
 
-from .._jit import jit, jit_twins
-from .geometry import line_geometry
-from .locate import BLOCK, phi_zone, rho_zone, theta_zone
+from ..._jit import jit, jit_twins
+from ..geometry import line_geometry
+from ..locate import BLOCK, phi_zone, rho_zone, theta_zone
 
 
 @jit
