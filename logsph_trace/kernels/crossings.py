@@ -12,7 +12,7 @@ import math
 import numpy as np
 
 from .._jit import jit
-from .geometry import EPSILON, PHI, THETA, _theta_edge_ahead
+from .geometry import EPSILON, PHI, RHO, THETA, _theta_edge_ahead
 from .locate import CONE_BLOCK
 
 # A direction lies on a cone, as far as rounding of a = d_y^2 - tan^2 d_h^2
@@ -111,6 +111,41 @@ def _at_infinity(t_candidate, t_low, slack):
     crossing, it costs the trace a few per cent (``python -m bench.ab``).
     """
     return t_candidate < t_low - 1e9 * slack  # slack is 1e-9 of the scene
+
+
+@jit(inline="always")
+def rho_times(ir, ir_turn, n_rho, t_closest, h2, rho_sq, t_stop, times, zones):
+    """Phase 2 for rho: the sphere crossings and zones entered, in order, into
+    ``times[RHO, 1:]`` and ``zones[RHO, 1:]``; returns their number.
+
+    From zone ``ir`` in to ``ir_turn`` (the closest approach), then out to
+    ``n_rho``. A stop at ``t_stop`` before the last drops the crossings
+    beyond it and leaves the region there (zone ``n_rho``), so the merge
+    ends the last segment at ``t_stop``.
+    """
+    inf = np.inf
+    n_r = 0
+    zone = ir
+    t_run = 0.0
+    for _ in range(ir - ir_turn):
+        t_run, t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone], False), t_run, inf)
+        zone -= 1
+        times[RHO, n_r + 1] = t_prev
+        zones[RHO, n_r + 1] = zone
+        n_r += 1
+    for _ in range(n_rho - ir_turn):
+        t_run, t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone + 1], True), t_run, inf)
+        zone += 1
+        times[RHO, n_r + 1] = t_prev
+        zones[RHO, n_r + 1] = zone
+        n_r += 1
+    if t_stop < times[RHO, n_r]:
+        while n_r > 0 and times[RHO, n_r] >= t_stop:
+            n_r -= 1
+        times[RHO, n_r + 1] = t_stop
+        zones[RHO, n_r + 1] = n_rho
+        n_r += 1
+    return n_r
 
 
 @jit(inline="always")

@@ -36,7 +36,7 @@ import numpy as np
 from numba import prange
 
 from .._jit import jit
-from .crossings import _clamp, _sphere_time, phi_times, theta_times
+from .crossings import phi_times, rho_times, theta_times
 from .geometry import (
     PHI,
     RHO,
@@ -67,6 +67,108 @@ def _write_segment(cells, t_enter, t_exit, at, ir, jt, kp, t_from, t_to):
     cells[at, 2] = kp
     t_enter[at] = t_from
     t_exit[at] = t_to
+
+
+@jit(inline="always")
+def _merge(ir, jt, kp, counts, snap, can_flow, grid, times, zones, out, used):
+    """Phase 3: merge the three families' sorted crossings; emit a segment while inside.
+
+    The ray starts in zones (``ir``, ``jt``, ``kp``); ``counts`` are the
+    crossings of each family (``n_r``, ``n_t``, ``n_p``) in ``times`` and
+    ``zones``; ``out`` the segment arrays (cells, t_enter, t_exit), written
+    from row ``used`` on. Returns the new ``used``.
+
+    Crossings that coincide (a corner where a sphere, a half-plane and a cone
+    meet) come out a few ulps apart; the slivers between them (shorter than
+    ``snap``) are cells the ray only touches. They are absorbed into the next
+    segment, which starts where the last one ended, so coverage stays exact.
+    """
+    cells, t_enter, t_exit = out
+    n_r, n_t, n_p = counts
+    n_rho = grid.rho_edges.shape[0] - 1
+    n_theta = grid.theta_edges.shape[0] - 1
+    n_phi = grid.phi_edges.shape[0] - 1
+    inf = np.inf
+    zones[RHO, 0] = ir
+    zones[THETA, 0] = jt
+    zones[PHI, 0] = kp
+    times[RHO, n_r + 1] = inf
+    times[THETA, n_t + 1] = inf
+    times[PHI, n_p + 1] = inf
+    # Crossings consumed so far per family: the current zone is zones[f, done_f]
+    # and the next crossing times[f, done_f + 1]. Picking the family is two
+    # selects and advancing is a flag add, so the loop has no branch on which
+    # family crosses -- the branch Amanatides & Woo mispredict on every voxel.
+    done_r = 0
+    done_t = 0
+    done_p = 0
+    t_now = 0.0
+    start = used
+    sliver_start = -1.0
+    # ``flowing``: the last step wrote a segment that ends now, so this one, if
+    # inside and no sliver, starts where it ended and is in another cell (a
+    # crossing changes its family's zone; see ``can_flow``).
+    flowing = False
+    for _ in range(n_r + n_t + n_p):
+        t_rho = times[RHO, done_r + 1]
+        t_theta = times[THETA, done_t + 1]
+        t_phi = times[PHI, done_p + 1]
+        t_angle = min(t_theta, t_phi)
+        t_next = max(min(t_rho, t_angle), t_now)
+        ir = zones[RHO, done_r]
+        jt = zones[THETA, done_t]
+        kp = zones[PHI, done_p]
+        inside = 0 <= ir < n_rho and jt < n_theta and 0 <= kp < n_phi
+        if flowing and inside and t_next - t_now > snap:
+            # The common step, with nothing to absorb or extend.
+            _write_segment(cells, t_enter, t_exit, used, ir, jt, kp, t_now, t_next)
+            used += 1
+        elif inside:
+            used, sliver_start, flowing = _rare_step(ir, jt, kp, t_now, t_next, snap, start,
+                                                     sliver_start, can_flow, out, used)
+        else:
+            flowing = False
+            sliver_start = -1.0
+        t_now = t_next
+        # Bitwise ``&`` on booleans, not ``and``: no short-circuit branch.
+        rho_first = t_rho <= t_angle
+        theta_first = t_theta <= t_phi
+        done_r += rho_first
+        done_t += (not rho_first) & theta_first
+        done_p += (not rho_first) & (not theta_first)
+        if done_r == n_r:
+            break  # past rho_max and moving away for good
+    return used
+
+
+@jit(inline="always")
+def _rare_step(ir, jt, kp, t_now, t_next, snap, start, sliver_start, can_flow, out, used):
+    """A step of ``_merge`` inside the grid that is not the common one: a sliver to
+    absorb, a cell to extend, or a segment after one. Returns (``used``,
+    ``sliver_start``, ``flowing``)."""
+    cells, t_enter, t_exit = out
+    # The segment written last, read back: it ends at ``last_exit``.
+    last_exit = t_exit[used - 1] if used > start else -np.inf
+    touching = t_now - last_exit <= snap
+    if t_next - t_now <= snap:
+        if sliver_start < 0.0 and not touching:
+            sliver_start = t_now
+        return used, sliver_start, False
+    if touching:
+        t_from = last_exit
+    elif sliver_start >= 0.0:
+        t_from = sliver_start
+    else:
+        t_from = t_now
+    if (touching and ir == cells[used - 1, 0] and jt == cells[used - 1, 1]
+            and kp == cells[used - 1, 2]):
+        # The same cell on both sides of a sliver or a zero-length detour
+        # (tangency, the seam of a one-sector circle): extend, don't repeat.
+        t_exit[used - 1] = t_next
+    else:
+        _write_segment(cells, t_enter, t_exit, used, ir, jt, kp, t_from, t_next)
+        used += 1
+    return used, -1.0, can_flow
 
 
 @jit
@@ -107,7 +209,6 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
     n_theta = grid.theta_edges.shape[0] - 1
     n_phi = grid.phi_edges.shape[0] - 1
     worst = max_segments(n_rho, n_theta, n_phi)
-    inf = np.inf
     # ``flowing`` (below) may start a segment without reading the last one back,
     # except across the seam of a one-sector circle, where the cell stays the same.
     can_flow = not (theta_full and n_theta == 1)
@@ -131,33 +232,9 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
         # Rounding of a crossing time is ~1e-14 of the scene's size; a crossing found
         # further in the past than this is one at infinity (see _at_infinity).
         slack = 1e-9 * (rho_edges[n_rho] + radius)
-        t_stop = t_max[row]
 
         # ---- phase 2: each family's crossing times, in order, up to the final exit.
-        n_r = 0
-        zone = ir
-        t_run = 0.0
-        for _ in range(ir - ir_turn):
-            t_run, t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone], False), t_run, inf)
-            zone -= 1
-            times[RHO, n_r + 1] = t_prev
-            zones[RHO, n_r + 1] = zone
-            n_r += 1
-        for _ in range(n_rho - ir_turn):
-            t_run, t_prev = _clamp(_sphere_time(t_closest, h2, rho_sq[zone + 1], True), t_run,
-                                   inf)
-            zone += 1
-            times[RHO, n_r + 1] = t_prev
-            zones[RHO, n_r + 1] = zone
-            n_r += 1
-        if t_stop < times[RHO, n_r]:
-            # Stop at t_max: drop the rho crossings beyond it and leave the region
-            # there (zone n_rho), so the merge ends the last segment at t_max.
-            while n_r > 0 and times[RHO, n_r] >= t_stop:
-                n_r -= 1
-            times[RHO, n_r + 1] = t_stop
-            zones[RHO, n_r + 1] = n_rho
-            n_r += 1
+        n_r = rho_times(ir, ir_turn, n_rho, t_closest, h2, rho_sq, t_max[row], times, zones)
         # The last rho crossing leaves the region for good: nothing after it matters.
         t_final = times[RHO, n_r]
 
@@ -168,82 +245,8 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
                         ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones)
 
         # ---- phase 3: merge the three sorted lists; emit while inside.
-        # Crossings that coincide (a corner where a sphere, a half-plane and a cone
-        # meet) come out a few ulps apart; the slivers between them (shorter than
-        # ``snap``) are cells the ray only touches. They are absorbed into the next
-        # segment, which starts where the last one ended, so coverage stays exact.
-        snap = 1e-3 * slack
-        zones[RHO, 0] = ir
-        zones[THETA, 0] = jt
-        zones[PHI, 0] = kp
-        times[RHO, n_r + 1] = inf
-        times[THETA, n_t + 1] = inf
-        times[PHI, n_p + 1] = inf
-        # Crossings consumed so far per family: the current zone is zones[f, done_f]
-        # and the next crossing times[f, done_f + 1]. Picking the family is two
-        # selects and advancing is a flag add, so the loop has no branch on which
-        # family crosses -- the branch Amanatides & Woo mispredict on every voxel.
-        done_r = 0
-        done_t = 0
-        done_p = 0
-        t_now = 0.0
-        start = used
-        sliver_start = -1.0
-        # ``flowing``: the last step wrote a segment that ends now, so this one, if
-        # inside and no sliver, starts where it ended and is in another cell (a
-        # crossing changes its family's zone; see ``can_flow``).
-        flowing = False
-        for _ in range(n_r + n_t + n_p):
-            t_rho = times[RHO, done_r + 1]
-            t_theta = times[THETA, done_t + 1]
-            t_phi = times[PHI, done_p + 1]
-            t_angle = min(t_theta, t_phi)
-            t_next = max(min(t_rho, t_angle), t_now)
-            ir = zones[RHO, done_r]
-            jt = zones[THETA, done_t]
-            kp = zones[PHI, done_p]
-            inside = 0 <= ir < n_rho and jt < n_theta and 0 <= kp < n_phi
-            if flowing and inside and t_next - t_now > snap:
-                # The common step, with nothing to absorb or extend.
-                _write_segment(cells, t_enter, t_exit, used, ir, jt, kp, t_now, t_next)
-                used += 1
-            elif inside:
-                flowing = False
-                # The segment written last, read back: it ends at ``last_exit``.
-                last_exit = t_exit[used - 1] if used > start else -inf
-                touching = t_now - last_exit <= snap
-                if t_next - t_now <= snap:
-                    if sliver_start < 0.0 and not touching:
-                        sliver_start = t_now
-                else:
-                    if touching:
-                        t_from = last_exit
-                    elif sliver_start >= 0.0:
-                        t_from = sliver_start
-                    else:
-                        t_from = t_now
-                    sliver_start = -1.0
-                    if (touching and ir == cells[used - 1, 0] and jt == cells[used - 1, 1]
-                            and kp == cells[used - 1, 2]):
-                        # The same cell on both sides of a sliver or a zero-length detour
-                        # (tangency, the seam of a one-sector circle): extend, don't repeat.
-                        t_exit[used - 1] = t_next
-                    else:
-                        _write_segment(cells, t_enter, t_exit, used, ir, jt, kp, t_from, t_next)
-                        used += 1
-                    flowing = can_flow
-            else:
-                flowing = False
-                sliver_start = -1.0
-            t_now = t_next
-            # Bitwise ``&`` on booleans, not ``and``: no short-circuit branch.
-            rho_first = t_rho <= t_angle
-            theta_first = t_theta <= t_phi
-            done_r += rho_first
-            done_t += (not rho_first) & theta_first
-            done_p += (not rho_first) & (not theta_first)
-            if done_r == n_r:
-                break  # past rho_max and moving away for good
+        used = _merge(ir, jt, kp, (n_r, n_t, n_p), 1e-3 * slack, can_flow, grid, times, zones,
+                      (cells, t_enter, t_exit), used)
         offsets[row + 1] = used
     return used, last
 
