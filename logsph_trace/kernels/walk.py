@@ -74,6 +74,188 @@ def _near_phi_face(x, y, z, zone, within, grid):
                              max(zone, 0), min(zone + 1, n), within)
 
 
+@jit(inline="always")
+def _leave_gap(t_max, t_closest, h2, skip, rho_sq):
+    """Where a walk from the egocentric gap starts: (time, shell).
+
+    Where the ray leaves the gap, on the inner sphere (near the centre a ray
+    sweeps through many angular zones, from the origin's direction to its
+    own, that hold no cell); with ``skip`` (see ``walk_ray``), on the last
+    sphere up to ``skip`` crossed before the end. A time at or past
+    ``t_max``: the ray ends in the gap.
+    """
+    t_start = t_closest + math.sqrt(max(rho_sq[0] - h2, 0.0))
+    if t_start >= t_max or skip <= 0:
+        return t_start, 0
+    # Outside the gap rho only grows, so each sphere is crossed once.
+    i = min(skip, _last_at_or_below((t_max - t_closest) ** 2 + h2, rho_sq))
+    before_end = t_max * (1.0 - 1e-9)
+    while i > 0:
+        t_sphere = _sphere_time(t_closest, h2, rho_sq[i], True)
+        if t_sphere < before_end:
+            return t_sphere, i
+        i -= 1
+    return t_start, 0
+
+
+@jit(inline="always")
+def _shells_in(i, t_now, t_next, at_crossing, inward, base, line, rho_sq, free):
+    """The spheres a falling stretch of ``walk_ray`` crosses inwards, up to ``t_next``.
+
+    ``base``: the column's first flag (``column * n_rho``), or -1 outside the
+    region's angles; ``line``: (t_closest, h2, snap). Each shell left through
+    the sphere below is flagged, unless it was entered at the crossing and
+    left within snap. Returns (shell, the last sphere crossed or -1, whether
+    the cell it left was flagged, ``at_crossing``, ``inward``).
+    """
+    t_closest, h2, snap = line
+    n_rho = rho_sq.shape[0] - 1
+    r2 = h2 if t_next >= t_closest else (t_next - t_closest) ** 2 + h2
+    crossed = -1
+    left_flagged = False
+    for _ in range(n_rho + 1):
+        if not (i >= 0 and r2 < rho_sq[i]):
+            break
+        left_flagged = base >= 0 and i < n_rho and not (
+            at_crossing and _left_within_snap(t_now, t_next, snap, t_closest, h2, i, rho_sq))
+        if left_flagged:
+            store_relaxed(free, base + i, FREE)
+        crossed = i
+        i -= 1
+        at_crossing = False
+        inward = True
+    return i, crossed, left_flagged, at_crossing, inward
+
+
+@jit(inline="always")
+def _shells_out(i, t_now, t_next, at_crossing, inward, base, line, rho_sq, free, last):
+    """The spheres a rising stretch of ``walk_ray`` crosses outwards, up to ``t_next``.
+
+    As ``_shells_in``; a shell entered through a sphere is a whole shell, or
+    the dip at the closest approach when entered inwards (a sliver when its
+    chord is within snap). ``last``: (crossed, crossed_out, left_flagged) so
+    far in the stretch, kept when no sphere is crossed here. Returns (shell,
+    crossed, crossed_out, left_flagged, ``at_crossing``, ``inward``).
+    """
+    t_closest, h2, snap = line
+    n_rho = rho_sq.shape[0] - 1
+    crossed, crossed_out, left_flagged = last
+    r2 = (t_next - t_closest) ** 2 + h2
+    for _ in range(n_rho + 1):
+        if not (i < n_rho and r2 >= rho_sq[i + 1]):
+            break
+        sliver = False
+        if base >= 0 and i >= 0:
+            if at_crossing:
+                sliver = _left_within_snap(t_now, t_next, snap, t_closest, h2, i, rho_sq)
+            else:  # a whole shell, or the dip: its chord
+                sliver = inward and 4.0 * (rho_sq[i + 1] - h2) <= snap * snap
+            if not sliver:
+                store_relaxed(free, base + i, FREE)
+        left_flagged = base >= 0 and i >= 0 and not sliver
+        crossed = i + 1
+        crossed_out = True
+        i += 1
+        at_crossing = False
+        inward = False
+    return i, crossed, crossed_out, left_flagged, at_crossing, inward
+
+
+@jit(inline="always")
+def _hit_cell(t_max, i, outward, flagged, column, last, line, rho_sq):
+    """The map index of a hit ray's end cell, or -1 (the end of ``walk_ray``).
+
+    ``i``: the shell at the end; ``flagged``: whether that cell stays inside
+    the region and was flagged; ``last``: (crossed, crossed_out,
+    left_flagged) of the last stretch; ``line``: (t_closest, h2).
+    """
+    t_closest, h2 = line
+    n_rho = rho_sq.shape[0] - 1
+    crossed, crossed_out, left_flagged = last
+    if not t_max <= _sphere_time(t_closest, h2, rho_sq[n_rho], True):
+        return -1  # the ray leaves the region before its end
+    # The trace stops at t_max by comparing its sphere crossing times with
+    # it, which rho^2 at t_max only approximates: on a sphere, follow the
+    # times. A sphere the trace does not cross before t_max leaves it in the
+    # cell before; one it does cross starts a sliver, which ends the trace
+    # without a hit.
+    if crossed >= 0 and _sphere_time(t_closest, h2, rho_sq[crossed], crossed_out) >= t_max:
+        before = crossed - 1 if crossed_out else crossed
+        if left_flagged and 0 <= before < n_rho:
+            return column * n_rho + before
+        return -1
+    ahead = i + 1 if outward else i
+    if 0 <= ahead <= n_rho and _sphere_time(t_closest, h2, rho_sq[ahead], outward) < t_max:
+        return -1
+    if flagged:
+        return column * n_rho + i
+    return -1
+
+
+@jit(inline="always")
+def _angle_crossings(sensor, direction, start, t_start, start_zones, sensor_zones, line, limits,
+                     grid, scratch):
+    """Plan and time the angular families of ``walk_ray`` from its start point.
+
+    Each family is planned from the start point, unless that point lies
+    within rounding of a face of its zone (``sensor_zones``: whether the
+    walk starts from the gap, and the sensor's zones): there a lookup may round
+    the other way from the trace, which reaches the point by its crossings
+    from the sensor (a line through or within ~1e-16 of the centre whose
+    direction lies on a cone, or one through the y axis on a half-plane).
+    Such a family is planned from the sensor, as the trace plans it, and the
+    walk starts after its crossings up to ``t_start``. ``line``: (t_closest,
+    h2, cx, cy, cz); ``limits``: (t_final, slack, snap); ``scratch``:
+    (times, zones, lookups). Returns the crossings of theta and phi and how
+    many of each lie before the start; the zones entered are in ``zones``.
+    """
+    ox, oy, oz = sensor
+    dx, dy, dz = direction
+    sx, sy, sz = start
+    jt, kp = start_zones
+    from_gap, jt_sensor, kp_sensor = sensor_zones
+    t_closest, h2, cx, cy, cz = line
+    t_final, slack, snap = limits
+    times, zones, lookups = scratch
+    jt_limit = theta_zone_near(dx, dz, lookups[2], grid)
+    kp_limit = phi_zone_near(dx, dy, dz, lookups[3], grid)
+    lookups[2] = jt_limit
+    lookups[3] = kp_limit
+    theta_from_sensor = from_gap and _near_theta_face(sx, sz, jt, snap, grid)
+    phi_from_sensor = from_gap and _near_phi_face(sx, sy, sz, kp, snap, grid)
+    t_theta = 0.0 if theta_from_sensor else t_start
+    t_phi = 0.0 if phi_from_sensor else t_start
+    jt, th_sigma, th_steps, t_axis = theta_plan(
+        ox if theta_from_sensor else sx, oz if theta_from_sensor else sz, cx, cz, dx, dz, h2,
+        t_closest, t_theta, ox, oz, jt_sensor if theta_from_sensor else jt, jt_limit,
+        grid.theta_edges, grid.theta_full,
+    )
+    kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
+        ox if phi_from_sensor else sx, oy if phi_from_sensor else sy,
+        oz if phi_from_sensor else sz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_phi,
+        kp_sensor if phi_from_sensor else kp, kp_limit, grid, lookups,
+    )
+    n_t = theta_times(ox, oz, dx, dz, t_theta, jt, jt_limit, th_sigma, th_steps, t_axis,
+                      grid.theta_sin, grid.theta_cos, grid.theta_full, t_final, slack, times,
+                      zones)
+    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_phi, kp, kp_limit, t_turn, ph1_steps,
+                    ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones)
+    zones[THETA, 0] = jt
+    zones[PHI, 0] = kp
+    times[THETA, n_t + 1] = np.inf
+    times[PHI, n_p + 1] = np.inf
+    # Crossings before the start (a plan from the sensor has some: the trace
+    # crosses them in the gap, or below the start sphere, where they bound no
+    # cell of the walk's).
+    done_t = 0
+    done_p = 0
+    while t_theta < t_start and times[THETA, done_t + 1] <= t_start:
+        done_t += 1
+    while t_phi < t_start and times[PHI, done_p + 1] <= t_start:
+        done_p += 1
+    return n_t, n_p, done_t, done_p
+
+
 @jit
 def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zones, lookups,
              free, skip):
@@ -109,7 +291,6 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     """
     rho_sq = grid.rho_sq
     theta_edges = grid.theta_edges
-    theta_full = grid.theta_full
     phi_edges = grid.phi_edges
     n_rho = rho_sq.shape[0] - 1
     n_theta = theta_edges.shape[0] - 1
@@ -129,24 +310,9 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
     sy = oy
     sz = oz
     if ir == -1:
-        # In the egocentric gap: start where the ray leaves it, on the inner
-        # sphere. Near the centre a ray sweeps through many angular zones (from
-        # the origin's direction to its own) that hold no cell.
-        t_start = t_closest + math.sqrt(max(rho_sq[0] - h2, 0.0))
+        t_start, i = _leave_gap(t_max, t_closest, h2, skip, rho_sq)
         if t_start >= t_max:
             return -1  # ends in the gap
-        i = 0
-        if skip > 0:
-            # Outside the gap rho only grows, so each sphere is crossed once:
-            # start on the last one up to ``skip`` crossed before the end.
-            i = min(skip, _last_at_or_below((t_max - t_closest) ** 2 + h2, rho_sq))
-            before_end = t_max * (1.0 - 1e-9)
-            while i > 0:
-                t_sphere = _sphere_time(t_closest, h2, rho_sq[i], True)
-                if t_sphere < before_end:
-                    t_start = t_sphere
-                    break
-                i -= 1
         sx += t_start * dx
         sy += t_start * dy
         sz += t_start * dz
@@ -162,48 +328,10 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
         return -1  # beyond rho_max and moving away
     t_final = min(t_max, t_leave)
 
-    jt_limit = theta_zone_near(dx, dz, lookups[2], grid)
-    kp_limit = phi_zone_near(dx, dy, dz, lookups[3], grid)
-    lookups[2] = jt_limit
-    lookups[3] = kp_limit
-    # Each family is planned from the start point, unless that point lies
-    # within rounding of a face of its zone: there a lookup may round the
-    # other way from the trace, which reaches the point by its crossings from
-    # the sensor (a line through or within ~1e-16 of the centre whose
-    # direction lies on a cone, or one through the y axis on a half-plane).
-    # Such a family is planned from the sensor, as the trace plans it, and the
-    # walk starts after its crossings up to ``t_start``.
-    theta_from_sensor = ir == -1 and _near_theta_face(sx, sz, jt, snap, grid)
-    phi_from_sensor = ir == -1 and _near_phi_face(sx, sy, sz, kp, snap, grid)
-    t_theta = 0.0 if theta_from_sensor else t_start
-    t_phi = 0.0 if phi_from_sensor else t_start
-    jt, th_sigma, th_steps, t_axis = theta_plan(
-        ox if theta_from_sensor else sx, oz if theta_from_sensor else sz, cx, cz, dx, dz, h2,
-        t_closest, t_theta, ox, oz, jt_sensor if theta_from_sensor else jt, jt_limit,
-        theta_edges, theta_full,
-    )
-    kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
-        ox if phi_from_sensor else sx, oy if phi_from_sensor else sy,
-        oz if phi_from_sensor else sz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_phi,
-        kp_sensor if phi_from_sensor else kp, kp_limit, grid, lookups,
-    )
-    n_t = theta_times(ox, oz, dx, dz, t_theta, jt, jt_limit, th_sigma, th_steps, t_axis,
-                      grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times, zones)
-    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_phi, kp, kp_limit, t_turn, ph1_steps,
-                    ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones)
-    zones[THETA, 0] = jt
-    zones[PHI, 0] = kp
-    times[THETA, n_t + 1] = np.inf
-    times[PHI, n_p + 1] = np.inf
-    # Crossings consumed so far per family (a plan from the sensor has some
-    # before the start: the trace crosses them in the gap, or below the start
-    # sphere, where they bound no cell of the walk's).
-    done_t = 0
-    done_p = 0
-    while t_theta < t_start and times[THETA, done_t + 1] <= t_start:
-        done_t += 1
-    while t_phi < t_start and times[PHI, done_p + 1] <= t_start:
-        done_p += 1
+    n_t, n_p, done_t, done_p = _angle_crossings(
+        (ox, oy, oz), (dx, dy, dz), (sx, sy, sz), t_start, (jt, kp),
+        (ir == -1, jt_sensor, kp_sensor), (t_closest, h2, cx, cy, cz),
+        (t_final, slack, snap), grid, (times, zones, lookups))
     jt = zones[THETA, done_t]
     kp = zones[PHI, done_p]
 
@@ -219,49 +347,20 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
         t_theta = times[THETA, done_t + 1]
         t_phi = times[PHI, done_p + 1]
         t_next = min(min(t_theta, t_phi), t_final)
-        crossed = -1  # the last sphere crossed in this stretch, if any
-        crossed_out = False  # ... outwards
-        left_flagged = False  # ... and whether the cell it left was flagged
+        # The spheres crossed in this stretch: the last one (or -1), whether
+        # outwards, and whether the cell it left was flagged.
+        crossed, crossed_out, left_flagged = -1, False, False
+        line = (t_closest, h2, snap)
         if falling:
             # Inward until the closest approach (or the next crossing before it).
-            r2 = h2 if t_next >= t_closest else (t_next - t_closest) ** 2 + h2
-            for _ in range(n_rho + 1):
-                if i >= 0 and r2 < rho_sq[i]:
-                    # Left through the sphere below: a whole shell, unless it
-                    # was entered at the crossing and left within snap.
-                    left_flagged = column_in and i < n_rho and not (
-                        at_crossing and _left_within_snap(t_now, t_next, snap, t_closest, h2, i,
-                                                          rho_sq))
-                    if left_flagged:
-                        store_relaxed(free, column * n_rho + i, FREE)
-                    crossed = i
-                    crossed_out = False
-                    i -= 1
-                    at_crossing = False
-                    inward = True
-                else:
-                    break
+            i, crossed, left_flagged, at_crossing, inward = _shells_in(
+                i, t_now, t_next, at_crossing, inward, column * n_rho if column_in else -1,
+                line, rho_sq, free)
             falling = t_next < t_closest
         if not falling:
-            r2 = (t_next - t_closest) ** 2 + h2
-            for _ in range(n_rho + 1):
-                if i < n_rho and r2 >= rho_sq[i + 1]:
-                    if column_in and i >= 0:
-                        if at_crossing:
-                            sliver = _left_within_snap(t_now, t_next, snap, t_closest, h2, i,
-                                                       rho_sq)
-                        else:  # a whole shell, or the dip: its chord
-                            sliver = inward and 4.0 * (rho_sq[i + 1] - h2) <= snap * snap
-                        if not sliver:
-                            store_relaxed(free, column * n_rho + i, FREE)
-                    left_flagged = column_in and i >= 0 and not sliver
-                    crossed = i + 1
-                    crossed_out = True
-                    i += 1
-                    at_crossing = False
-                    inward = False
-                else:
-                    break
+            i, crossed, crossed_out, left_flagged, at_crossing, inward = _shells_out(
+                i, t_now, t_next, at_crossing, inward, column * n_rho if column_in else -1,
+                line, rho_sq, free, (crossed, crossed_out, left_flagged))
             if i == n_rho and t_next < t_final:
                 return -1  # past rho_max and moving away for good
         # The cell is left at t_next: by an angular crossing or the end of the ray.
@@ -274,27 +373,10 @@ def walk_ray(ox, oy, oz, dx, dy, dz, t_max, is_hit, ir, jt, kp, grid, times, zon
             if stays:
                 store_relaxed(free, column * n_rho + i, FREE)
         if t_next >= t_final:
-            if not (is_hit and t_max <= _sphere_time(t_closest, h2, rho_sq[n_rho], True)):
-                return -1  # no hit, or the ray leaves the region before its end
-            # The trace stops at t_max by comparing its sphere crossing times
-            # with it, which rho^2 at t_max only approximates: on a sphere,
-            # follow the times. A sphere the trace does not cross before t_max
-            # leaves it in the cell before; one it does cross starts a sliver,
-            # which ends the trace without a hit.
-            if crossed >= 0 and _sphere_time(t_closest, h2, rho_sq[crossed],
-                                             crossed_out) >= t_max:
-                before = crossed - 1 if crossed_out else crossed
-                if left_flagged and 0 <= before < n_rho:
-                    return column * n_rho + before
+            if not is_hit:
                 return -1
-            outward = not falling
-            ahead = i + 1 if outward else i
-            if 0 <= ahead <= n_rho and _sphere_time(t_closest, h2, rho_sq[ahead],
-                                                    outward) < t_max:
-                return -1
-            if cell_in and stays:
-                return column * n_rho + i
-            return -1
+            return _hit_cell(t_max, i, not falling, cell_in and stays, column,
+                             (crossed, crossed_out, left_flagged), (t_closest, h2), rho_sq)
         # Flag adds, not a branch on which family crosses (a coin toss per crossing).
         theta_first = t_theta <= t_phi
         done_t += theta_first
