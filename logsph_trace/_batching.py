@@ -241,13 +241,14 @@ def run_batch(kernels, span_inputs, inputs, bound_inputs, n_rays, worst, paralle
     too small to split, one thread, or a Numba without the chunks' atomics
     (``kernels.atomic.AVAILABLE``) takes the serial pass.
 
-    Two threads once had a path of their own, meeting in the middle of the
-    batch; the ordered chunks were as fast in one run (``trace_many`` of
-    ``bench.run``'s 100,000 rays on 2 threads, best of 12: 53.9 ms against
-    55.0 into fresh arrays, 35.8 against 36.7 into reused ones), so it went.
-    A plain design (a bound pass, offsets, each chunk traced into its region
-    of a reused scratch, then copied to the output) took 62.0 ms in the
-    same kind of run, 13% slower than the ordered chunks' 54.6.
+    The ordered chunks pay for their machinery: against a plain design (a
+    bound pass, offsets, each chunk traced into its region of a reused
+    scratch, then one copy that closes the gaps), ``python -m
+    bench.batch_designs`` on 2 threads took 55.1 ms against 63.3 (1.15x,
+    ``bench/results/batch_designs.md``). Two threads once had a path of
+    their own, meeting in the middle of the batch; the ordered chunks were
+    as fast in one run (best of 12: 53.9 ms against 55.0 into fresh arrays,
+    35.8 against 36.7 into reused ones), so it went.
     """
     threads = numba.get_num_threads() if parallel and _atomic.AVAILABLE else 1
     if threads == 1 or n_rays < PARALLEL_MIN_RAYS:

@@ -347,9 +347,9 @@ def _towards_the_centre(origin, axis):
     twice, far apart in azimuth and elevation, and its per-shell boxes are
     mostly empty: ``kernels.cone.sparse_cone`` sums it without boxes, to the
     same results bit for bit. ``python -m bench.cone_sums`` forces each way
-    in one run (2 threads): the README's gaze, facing the robot, took 6.7 ms
-    cell by cell against 21.4 ms in boxes (``fixation_probability``); a gaze
-    away from the robot took 0.62 ms in boxes against 0.78 ms cell by cell,
+    in one run (2 threads): the README's gaze, facing the robot, took 6.0 ms
+    cell by cell against 21.9 ms in boxes (``fixation_probability``); a gaze
+    away from the robot took 0.75 ms in boxes against 0.82 ms cell by cell,
     so it keeps them.
     """
     origin = np.asarray(origin, dtype=np.float64)
@@ -383,7 +383,7 @@ def theta_shifts(grid, origins, axes):
     the axis instead, a gaze from the eyes towards the robot (a face the
     robot's camera sees) puts the cells near the eyes across the seam, and
     every shell's box goes round the whole circle: ``trace_cones`` of 16
-    such gazes took 322 ms with that rule against 226 ms with this one, in
+    such gazes took 318 ms with that rule against 221 ms with this one, in
     one run (``python -m bench.cone_sums``). Only the boxes' layout depends
     on it: the cells, sums and first reaches are the same for any shift.
     """
