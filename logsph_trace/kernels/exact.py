@@ -216,19 +216,18 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
     for row in range(first, last):
         if limit - used < worst:
             return used, row
-        ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn, radius = ray_start(
-            origins, directions, row, rho_edges, rho_kind, per_log)
-        if ir_turn == n_rho:
+        ray = ray_start(origins, directions, row, rho_edges, rho_kind, per_log)
+        if ray.ir_turn == n_rho:
             # Beyond rho_max and moving away: never inside.
             offsets[row + 1] = 0 if bounds_only else used
             continue
-        (jt, jt_limit, th_sigma, th_steps, t_axis, kp_limit, kp, t_turn, ph1_steps, ph2_start,
-         ph2_steps, ph_jump) = angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid,
-                                          lookups)
+        plan = angle_plan(ray, grid, lookups)
         if bounds_only:
-            offsets[row + 1] = segments_bound(ir, ir_turn, n_rho, th_steps, t_axis, ph1_steps,
-                                              ph2_steps, ph_jump)
+            offsets[row + 1] = segments_bound(ray, plan, n_rho)
             continue
+        ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn, radius = ray
+        (jt, jt_limit, th_sigma, th_steps, t_axis, kp_limit, kp, t_turn, ph1_steps, ph2_start,
+         ph2_steps, ph_jump) = plan
         # Rounding of a crossing time is ~1e-14 of the scene's size; a crossing found
         # further in the past than this is one at infinity (see _at_infinity).
         slack = 1e-9 * (rho_edges[n_rho] + radius)

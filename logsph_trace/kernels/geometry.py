@@ -11,6 +11,7 @@ and merged in ``exact``.
 """
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -271,14 +272,54 @@ def phi_plan(ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_start, kp, kp_
     return kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump
 
 
+class Ray(NamedTuple):
+    """A ray's set-up (``ray_start``): its origin and unit direction, the line's
+    closest point to the centre (``line_geometry``), its rho zones at the start
+    and at the closest approach, and the origin's distance from the centre."""
+
+    ox: float
+    oy: float
+    oz: float
+    dx: float
+    dy: float
+    dz: float
+    t_closest: float
+    h2: float
+    cx: float
+    cy: float
+    cz: float
+    ir: int
+    ir_turn: int
+    radius: float
+
+
+class AnglePlan(NamedTuple):
+    """Phase 1 for theta and phi (``angle_plan``): the start theta zone and the
+    direction's, ``theta_plan``'s sweep sign, crossing count and ``t_axis``,
+    then the direction's phi zone and ``phi_plan``'s six values."""
+
+    jt: int
+    jt_limit: int
+    th_sigma: int
+    th_steps: int
+    t_axis: float
+    kp_limit: int
+    kp: int
+    t_turn: float
+    ph1_steps: int
+    ph2_start: int
+    ph2_steps: int
+    ph_jump: int
+
+
 @jit(inline="always")
 def ray_start(origins, directions, row, rho_edges, rho_kind, per_log):
     """Ray ``row``'s origin and unit direction, its ``line_geometry`` and phase 1 for rho.
 
-    Returns the origin, the direction, ``line_geometry``'s five values, then
-    the rho zones at the start, ``ir``, and at the closest approach, ``ir_turn``
-    (rho falls until then and rises after, Eq. 9a), and the origin's distance
-    from the centre. ``ir_turn == n_rho``: beyond rho_max and moving away,
+    Returns a ``Ray``: the origin, the direction, ``line_geometry``'s five
+    values, then the rho zones at the start, ``ir``, and at the closest
+    approach, ``ir_turn`` (rho falls until then and rises after, Eq. 9a),
+    and the origin's distance from the centre. ``ir_turn == n_rho``: beyond rho_max and moving away,
     never inside. ``per_log``: ``per_log_of(rho_edges, rho_kind)``, a constant
     of the grid (a logarithm, so a caller with many rays takes it once). An
     origin within ``AT_CENTRE`` rho_max of the centre is the centre.
@@ -300,17 +341,15 @@ def ray_start(origins, directions, row, rho_edges, rho_kind, per_log):
     ir_turn = ir
     if t_closest > 0.0:
         ir_turn = min(locate_in(math.sqrt(h2), rho_edges, rho_kind, per_log), ir)
-    return ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn, radius
+    return Ray(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn, radius)
 
 
 @jit(inline="always")
-def angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid, lookups):
-    """Phase 1 for theta and phi: the zones at the branch ends, so the crossing counts.
-
-    Returns the start theta zone and the direction's, ``theta_plan``'s sweep
-    sign, crossing count and ``t_axis``, then the direction's phi zone and
-    ``phi_plan``'s six values.
+def angle_plan(ray, grid, lookups):
+    """Phase 1 for theta and phi of a ``Ray``: the zones at the branch ends, so the
+    crossing counts; an ``AnglePlan``.
     """
+    ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz = ray[:11]
     theta_edges = grid.theta_edges
     jt = theta_zone_rough(ox, oz, theta_edges, grid.theta_sin, grid.theta_cos, grid.theta_kind)
     jt_limit = theta_zone_rough(dx, dz, theta_edges, grid.theta_sin, grid.theta_cos,
@@ -325,16 +364,18 @@ def angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid, lookups)
     kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = phi_plan(
         ox, oy, oz, cx, cy, cz, dx, dy, dz, h2, t_closest, 0.0, kp, kp_limit, grid, lookups,
     )
-    return (jt, jt_limit, th_sigma, th_steps, t_axis, kp_limit, kp, t_turn, ph1_steps, ph2_start,
-            ph2_steps, ph_jump)
+    return AnglePlan(jt, jt_limit, th_sigma, th_steps, t_axis, kp_limit, kp, t_turn, ph1_steps,
+                     ph2_start, ph2_steps, ph_jump)
 
 
 @jit(inline="always")
-def segments_bound(ir, ir_turn, n_rho, th_steps, t_axis, ph1_steps, ph2_steps, ph_jump):
-    """A ray's bound on its segments from its set-up: its crossings, plus one
-    for a stop at ``t_max`` (each merge step emits at most one segment)."""
-    jumps = (1 if t_axis < np.inf else 0) + ph_jump
-    return (ir - ir_turn) + (n_rho - ir_turn) + th_steps + ph1_steps + ph2_steps + jumps + 1
+def segments_bound(ray, plan, n_rho):
+    """A ray's bound on its segments from its set-up (``Ray``, ``AnglePlan``): its
+    crossings, plus one for a stop at ``t_max`` (each merge step emits at most one
+    segment)."""
+    jumps = (1 if plan.t_axis < np.inf else 0) + plan.ph_jump
+    return ((ray.ir - ray.ir_turn) + (n_rho - ray.ir_turn) + plan.th_steps + plan.ph1_steps
+            + plan.ph2_steps + jumps + 1)
 
 
 @jit
@@ -347,13 +388,10 @@ def ray_bound(origins, directions, row, grid, per_log, lookups):
     ``per_log`` as in ``ray_start``, ``lookups`` as in ``trace_span``.
     """
     n_rho = grid.rho_edges.shape[0] - 1
-    ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, ir, ir_turn, _ = ray_start(
-        origins, directions, row, grid.rho_edges, grid.rho_kind, per_log)
-    if ir_turn == n_rho:
+    ray = ray_start(origins, directions, row, grid.rho_edges, grid.rho_kind, per_log)
+    if ray.ir_turn == n_rho:
         return 0
-    (_, _, _, th_steps, t_axis, _, _, _, ph1_steps, _, ph2_steps,
-     ph_jump) = angle_plan(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, grid, lookups)
-    return segments_bound(ir, ir_turn, n_rho, th_steps, t_axis, ph1_steps, ph2_steps, ph_jump)
+    return segments_bound(ray, angle_plan(ray, grid, lookups), n_rho)
 
 
 @jit
