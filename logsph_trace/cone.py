@@ -411,9 +411,9 @@ def by_first_reach(cells, weights, t_first, normalise):
 
     The weights are normalised to sum to 1 if ``normalise``.
     """
-    # numpy's, not ``first_reach_order``'s radix sort: 3 us against 7 us for
-    # a default gaze's ~300 cells (68 against 30 at 2,000), and nothing to compile.
-    order = np.argsort(t_first, kind="stable")
+    # A radix sort: 30 us against numpy's stable argsort's 68 us for 2,000
+    # cells, 2.7% of bench.cone's 1,000-ray cone (7 against 3 us at 300 cells).
+    order = _cone.first_reach_order(t_first)
     weights = weights[order]
     if normalise:
         _cone.normalise(weights)

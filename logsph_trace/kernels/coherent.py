@@ -147,11 +147,7 @@ def _stays_in_column(x1, y1, z1, x2, y2, z2, dx, dy, dz, length, j, k, margin, g
 # Which rays ``mark_scan`` walks: every one, the coherent scan's samples (the
 # first ray of each coarse bin), or the others.
 WALK_ALL = 0
-
-
 WALK_SAMPLES = 1
-
-
 WALK_OTHERS = 2
 
 
@@ -574,11 +570,7 @@ FACE_REACH = math.acos(1.0 / math.sqrt(3.0))
 # A cell's shadow is bounded through its angular patch split into parts of at
 # most this span (theta + phi, radians), and at most MAX_PARTS x MAX_PARTS.
 SUBPATCH_SPAN = 0.05
-
-
 MAX_PARTS = 12
-
-
 MAX_CORNERS = 2 * (MAX_PARTS + 1) ** 2
 
 

@@ -149,11 +149,14 @@ def rho_times(ir, ir_turn, n_rho, t_closest, h2, rho_sq, t_stop, times, zones):
 
 
 @jit(inline="always")
-def theta_times(eye_x, eye_z, dx, dz, t_start, jt, jt_limit, th_sigma, th_steps, t_axis,
-                theta_sin, theta_cos, theta_full, t_final, slack, times, zones):
+def theta_times(ray, plan, t_start, grid, t_final, slack, times, zones):
     """Phase 2 for theta: the crossing times and zones entered, in order, from
     ``t_start`` up to ``t_final``, into ``times[THETA, 1:]`` and ``zones[THETA, 1:]``;
-    returns their number. ``eye_x``, ``eye_z``: the clock's origin (``_plane_time``)."""
+    returns their number. ``ray``: a ``geometry.Ray`` (its origin is the clock's,
+    ``_plane_time``); ``plan``: a ``geometry.AnglePlan``."""
+    eye_x, eye_z, dx, dz = ray.ox, ray.oz, ray.dx, ray.dz
+    jt, jt_limit, th_sigma, th_steps, t_axis = plan[:5]
+    theta_sin, theta_cos, theta_full = grid.theta_sin, grid.theta_cos, grid.theta_full
     n_theta = theta_sin.shape[0] - 1
     n_zones_theta = n_theta if theta_full else n_theta + 1
     n_t = 0
@@ -356,11 +359,7 @@ def _reverse(row, first, count):
 # not literals, so that both calls of each ray share one compiled function (a
 # literal argument gets a signature of its own: about 1.3 s more, cold).
 FIRST_BRANCH = np.bool_(True)
-
-
 SECOND_BRANCH = np.bool_(False)
-
-
 NO_CROSSINGS = np.int64(0)
 
 
@@ -423,8 +422,7 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
 
 
 @jit(inline="always")
-def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, ph1_steps,
-              ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones):
+def phi_times(ray, plan, t_start, grid, t_final, slack, times, zones):
     """Phase 2 for phi: as ``theta_times``, into row ``PHI``; returns their number.
 
     ``grid``: the grid's ``GridArrays``. Where its cone arrays are padded
@@ -434,6 +432,8 @@ def phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_start, kp, kp_limit, t_turn, 
     the arrays, not the constant: a loop of a fixed 8 LLVM unrolls into
     scalar code. Unpadded (the GPU's), a block times only the cones it needs.
     """
+    dx, dy, dz, t_closest, _, cx, cy, cz = ray[3:11]
+    kp_limit, kp, t_turn, ph1_steps, ph2_start, ph2_steps, ph_jump = plan[5:]
     inf = np.inf
     phi_tan2 = grid.phi_tan2
     phi_nappe = grid.phi_nappe

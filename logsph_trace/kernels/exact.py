@@ -237,11 +237,8 @@ def trace_span(first, last, origins, directions, t_max, grid, times, zones, look
         # The last rho crossing leaves the region for good: nothing after it matters.
         t_final = times[RHO, n_r]
 
-        n_t = theta_times(ox, oz, dx, dz, 0.0, jt, jt_limit, th_sigma, th_steps, t_axis,
-                          grid.theta_sin, grid.theta_cos, theta_full, t_final, slack, times,
-                          zones)
-        n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, 0.0, kp, kp_limit, t_turn, ph1_steps,
-                        ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones)
+        n_t = theta_times(ray, plan, 0.0, grid, t_final, slack, times, zones)
+        n_p = phi_times(ray, plan, 0.0, grid, t_final, slack, times, zones)
 
         # ---- phase 3: merge the three sorted lists; emit while inside.
         used = _merge(ir, jt, kp, (n_r, n_t, n_p), 1e-3 * slack, can_flow, grid, times, zones,

@@ -38,8 +38,6 @@ EPSILON = 2.220446049250313e-16
 # are rounding. Squared: h^2 against |o|^2 (``phi_plan``), the sweep sign's
 # square against |o|^2 |d_h|^2.
 THROUGH_CENTRE_SQ = (4.0 * EPSILON) ** 2
-
-
 THROUGH_AXIS_SQ = (4.0 * EPSILON) ** 2
 
 
@@ -52,11 +50,7 @@ AT_CENTRE = 1e-20
 
 # Rows of the per-ray scratch: crossing times and the zone entered, per family.
 RHO = 0
-
-
 THETA = 1
-
-
 PHI = 2
 
 

@@ -17,14 +17,12 @@ import numpy as np
 from .._jit import jit
 from .atomic import store_relaxed
 from .crossings import _sphere_time, phi_times, theta_times
-from .geometry import PHI, THETA, line_geometry, phi_plan, theta_plan
+from .geometry import PHI, THETA, AnglePlan, Ray, line_geometry, phi_plan, theta_plan
 from .locate import _last_at_or_below, norm3, phi_zone_near, theta_zone_near
 
 # A cell's flag in one scan: a ray crossed it, or ended in it (the hit
 # replaces the byte: it wins over a miss).
 FREE = 1
-
-
 HIT = 2
 
 
@@ -235,11 +233,11 @@ def _angle_crossings(sensor, direction, start, t_start, start_zones, sensor_zone
         oz if phi_from_sensor else sz, cx, cy, cz, dx, dy, dz, h2, t_closest, t_phi,
         kp_sensor if phi_from_sensor else kp, kp_limit, grid, lookups,
     )
-    n_t = theta_times(ox, oz, dx, dz, t_theta, jt, jt_limit, th_sigma, th_steps, t_axis,
-                      grid.theta_sin, grid.theta_cos, grid.theta_full, t_final, slack, times,
-                      zones)
-    n_p = phi_times(cx, cy, cz, dx, dy, dz, t_closest, t_phi, kp, kp_limit, t_turn, ph1_steps,
-                    ph2_start, ph2_steps, ph_jump, grid, t_final, slack, times, zones)
+    ray = Ray(ox, oy, oz, dx, dy, dz, t_closest, h2, cx, cy, cz, -1, -1, 0.0)
+    plan = AnglePlan(jt, jt_limit, th_sigma, th_steps, t_axis, kp_limit, kp, t_turn, ph1_steps,
+                     ph2_start, ph2_steps, ph_jump)
+    n_t = theta_times(ray, plan, t_theta, grid, t_final, slack, times, zones)
+    n_p = phi_times(ray, plan, t_phi, grid, t_final, slack, times, zones)
     zones[THETA, 0] = jt
     zones[PHI, 0] = kp
     times[THETA, n_t + 1] = np.inf
