@@ -8,7 +8,8 @@ map, its objects, a gaze, the named object), run as written. Each round
 starts a fresh Python with ``NUMBA_CACHE_DIR`` pointing at a new, empty
 folder (cold: every kernel the job needs compiles and is cached there),
 then another fresh Python on the same folder (warm: every kernel loads).
-Wall time of the whole process, imports included. Also counts the kernels
+Wall time of the whole process, imports included; the package is this
+tree's, first on the path, whatever is installed. Also counts the kernels
 the cold run compiled, and the seconds each took (Numba's compile events,
 outermost kernels only). Writes ``bench/results/first_call.json`` (and
 ``.md``).
@@ -57,6 +58,8 @@ def run(script, cache, probe):
     """Run ``script`` in a fresh Python with the cache in ``cache``; (seconds, kernels)."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), LOGSPH_TRACE_COMPILE_NOTE="0")
     env.pop("LOGSPH_TRACE_CACHE", None)
+    # This tree's package first, whatever is installed (as bench.ab runs each tree).
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + env.get("PYTHONPATH", "").split(os.pathsep))
     command = [sys.executable, "-c", PROBE, str(script)] if probe else [sys.executable, script]
     start = time.perf_counter()
     done = subprocess.run(command, env=env, cwd=ROOT, capture_output=True, text=True, check=True)
