@@ -329,13 +329,8 @@ def _look_grid(args, depth_points):
     return Grid(0.3, math.ceil(farthest * 1.05 * 2) / 2, 64, 360, 180)
 
 
-def cmd_look(args):
-    """``logsph-trace look``: rank the objects a gaze may land on, in a depth image."""
-    from . import OccupancyGrid, depth_to_points, fit_plane, gaze_objects, label_objects
-    from .demo import CAMERA_FROM_MAP
-    from .images import read_image
-    from .sensor import gaze_from_pitch_yaw, gaze_from_vector
-
+def _look_inputs(args, read_image):
+    """Read and check ``look``'s depth image, labels (or None) and names (or None)."""
     if args.names and not args.labels:
         raise CliError("--names names the labels of --labels: give --labels FILE too")
     if not 0.0 <= args.half_angle < 90.0:
@@ -348,7 +343,28 @@ def cmd_look(args):
                            f"{depth.shape[0]} pixels, got {labels.shape[1]} x {labels.shape[0]}")
         if labels.dtype.kind not in "iu":
             raise CliError(f"--labels must hold whole numbers, got {labels.dtype}")
-    names = _read_names(args.names) if args.names else None
+    return depth, labels, _read_names(args.names) if args.names else None
+
+
+def _look_row(hit, names, camera_from_map):
+    """One ``look`` result: the object, its name (with ``names``), probability, point, distance."""
+    row = {"object": hit.id}
+    if names is not None:
+        row["name"] = hit.name
+    row.update(probability=hit.probability,
+               point=[round(v, 4) for v in (camera_from_map @ hit.point).tolist()],
+               distance=hit.distance)
+    return row
+
+
+def cmd_look(args):
+    """``logsph-trace look``: rank the objects a gaze may land on, in a depth image."""
+    from . import OccupancyGrid, depth_to_points, fit_plane, gaze_objects, label_objects
+    from .demo import CAMERA_FROM_MAP
+    from .images import read_image
+    from .sensor import gaze_from_pitch_yaw, gaze_from_vector
+
+    depth, labels, names = _look_inputs(args, read_image)
     scan = depth_to_points(depth, args.intrinsics, depth_scale=args.depth_scale)
     grid = _look_grid(args, scan.points)
     bvm = OccupancyGrid(grid).integrate_depth(depth, args.intrinsics,
@@ -367,15 +383,7 @@ def cmd_look(args):
     else:
         gaze = gaze_from_vector(args.gaze, args.eyes)
     objects = gaze_objects(bvm, gaze, half_angle=math.radians(args.half_angle), names=names)
-    rows = []
-    for hit in objects:
-        row = {"object": hit.id}
-        if names is not None:
-            row["name"] = hit.name
-        row.update(probability=hit.probability,
-                   point=[round(v, 4) for v in (CAMERA_FROM_MAP @ hit.point).tolist()],
-                   distance=hit.distance)
-        rows.append(row)
+    rows = [_look_row(hit, names, CAMERA_FROM_MAP) for hit in objects]
     if args.json:
         json.dump(rows, sys.stdout, indent=1)
         sys.stdout.write("\n")

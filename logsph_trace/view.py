@@ -73,21 +73,8 @@ def write_view(path, occupancy, gaze=None, objects=None, half_angle=None, names=
         raise validate.WrongTypeError(f"objects must be GazeObjects, got "
                                       f"{type(objects).__name__}")
     names = dict(names or {})
-    grid = occupancy.grid
-    cells = occupancy.occupied(threshold)
-    if cells.shape[0] > MAX_CELLS:
-        cells = cells[:: -(-cells.shape[0] // MAX_CELLS)]
-    centres = grid.cell_centers(cells) if cells.shape[0] else np.empty((0, 3))
-    labels = occupancy.labels[tuple(cells.T)] if cells.shape[0] else np.empty(0, np.int32)
     figure = go.Figure()
-    for label in np.unique(labels).tolist():
-        mine = centres[labels == label]
-        name = "no object" if label == 0 else names.get(label, f"object {label}")
-        colour = "#9a9a9a" if label == 0 else COLOURS[(label - 1) % len(COLOURS)]
-        figure.add_trace(go.Scatter3d(
-            x=mine[:, 0], y=mine[:, 1], z=mine[:, 2], mode="markers", name=name,
-            marker=dict(size=1.6, color=colour, opacity=0.35 if label == 0 else 0.8),
-            hovertemplate=f"{name}<br>(%{{x:.2f}}, %{{y:.2f}}, %{{z:.2f}}) m<extra></extra>"))
+    _draw_cells(go, figure, occupancy, threshold, names)
     if gaze is not None:
         _draw_gaze(go, figure, gaze, objects, half_angle)
     if objects is not None:
@@ -109,6 +96,26 @@ def write_view(path, occupancy, gaze=None, objects=None, half_angle=None, names=
     with atomic_write(path) as stream:
         stream.write(html.encode("utf-8"))
     return Path(path)
+
+
+def _draw_cells(go, figure, occupancy, threshold, names):
+    """Add the map's occupied cells to ``figure``, a trace per object label.
+
+    At most ``MAX_CELLS`` cells, evenly thinned.
+    """
+    cells = occupancy.occupied(threshold)
+    if cells.shape[0] > MAX_CELLS:
+        cells = cells[:: -(-cells.shape[0] // MAX_CELLS)]
+    centres = occupancy.grid.cell_centers(cells) if cells.shape[0] else np.empty((0, 3))
+    labels = occupancy.labels[tuple(cells.T)] if cells.shape[0] else np.empty(0, np.int32)
+    for label in np.unique(labels).tolist():
+        mine = centres[labels == label]
+        name = "no object" if label == 0 else names.get(label, f"object {label}")
+        colour = "#9a9a9a" if label == 0 else COLOURS[(label - 1) % len(COLOURS)]
+        figure.add_trace(go.Scatter3d(
+            x=mine[:, 0], y=mine[:, 1], z=mine[:, 2], mode="markers", name=name,
+            marker=dict(size=1.6, color=colour, opacity=0.35 if label == 0 else 0.8),
+            hovertemplate=f"{name}<br>(%{{x:.2f}}, %{{y:.2f}}, %{{z:.2f}}) m<extra></extra>"))
 
 
 def _draw_gaze(go, figure, gaze, objects, half_angle):

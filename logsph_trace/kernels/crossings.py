@@ -197,11 +197,14 @@ def theta_times(ray, plan, t_start, grid, t_final, slack, times, zones):
 
 
 @jit(inline="always")
-def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, cab, ca2, b2,
-                first_branch, branch_start, slack):
+def _cone_times(low, count, cones, row, first, line, branch):
     """Crossings of the elevation cones ``low`` .. ``low + count - 1``, each on its own
     nappe and within the current branch, into ``row[first:first + count]``
     (a padding cone, of ``tan2`` and ``nappe`` 0, gives any number).
+
+    ``cones``: the grid's (``phi_tan2``, ``phi_nappe``); ``line``: (t_closest,
+    c_x, c_y, c_z, d_x, d_y, d_z, cab, ca2, b2); ``branch``: (whether it is the
+    first branch, its start, the slack); see ``_branch_times``.
 
     ``(c_y + u d_y)^2 = tan(phi)^2 ((c_x + u d_x)^2 + (c_z + u d_z)^2)``, with
     ``u = t - t_closest`` measured from the line's closest point ``c``, solved
@@ -248,6 +251,9 @@ def _cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cy, dy, 
     ``_branch_times`` passes a whole block as ``count`` where the arrays are
     padded for it, so that LLVM's scalar loop for a remainder never runs.
     """
+    phi_tan2, phi_nappe = cones
+    t_closest, _, cy, _, _, dy, _, cab, ca2, b2 = line
+    first_branch, branch_start, slack = branch
     tan2s = phi_tan2[low:low + count]
     nappes = phi_nappe[low:low + count]
     out = row[first:first + count]
@@ -301,8 +307,7 @@ FLAT_TAN2 = 1e-10
 
 
 @jit(inline="always")
-def _flat_cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cx, cy, cz, dx,
-                     dy, dz, cab, ca2, b2, first_branch, branch_start, slack):
+def _flat_cone_times(low, count, cones, row, first, line, branch):
     """Time again, as ``_cone_times`` does, each cone of ``low`` .. ``low + count - 1``
     within ``FLAT_TAN2`` of the plane y = 0 (but not the plane itself).
 
@@ -319,6 +324,9 @@ def _flat_cone_times(low, count, phi_tan2, phi_nappe, row, first, t_closest, cx,
     (tan^2 (c_y C.B - |C|^2 d_y) - s c_y sqrt(disc)) / q, with s the sign
     of ``half_b``: the same quantities, exactly, in real arithmetic.
     """
+    phi_tan2, phi_nappe = cones
+    t_closest, cx, cy, cz, dx, dy, dz, cab, ca2, b2 = line
+    first_branch, branch_start, slack = branch
     across_x = dy * cx - cy * dx
     across_z = dy * cz - cy * dz
     wide = across_x * across_x + across_z * across_z
@@ -386,6 +394,9 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
     at least ``lanes`` cones (see ``phi_times``). Returns (``n_p``,
     ``t_prev``, ``zone``, whether a crossing past ``t_final`` ended the list).
     """
+    cones = (phi_tan2, phi_nappe)
+    line = (t_closest, cx, cy, cz, dx, dy, dz, cab, ca2, b2)
+    branch = (first_branch, branch_start, slack)
     row = times[PHI]
     step = 0
     t_run = t_prev
@@ -394,11 +405,9 @@ def _branch_times(zone, sigma, steps, t_prev, t_high, n_p, first_branch, branch_
     while step < steps:
         count = min(CONE_BLOCK, steps - step)
         low = zone + 1 if sigma > 0 else zone - count + 1
-        _cone_times(low, max(count, lanes), phi_tan2, phi_nappe, row, n_p + 1, t_closest, cy, dy,
-                    cab, ca2, b2, first_branch, branch_start, slack)
+        _cone_times(low, max(count, lanes), cones, row, n_p + 1, line, branch)
         if low < flat_to and flat_from < low + count:  # a cone all but flat in this block
-            _flat_cone_times(low, count, phi_tan2, phi_nappe, row, n_p + 1, t_closest, cx, cy,
-                             cz, dx, dy, dz, cab, ca2, b2, first_branch, branch_start, slack)
+            _flat_cone_times(low, count, cones, row, n_p + 1, line, branch)
         if sigma < 0:
             _reverse(row, n_p + 1, count)
         for _ in range(count):
