@@ -56,7 +56,7 @@ from .kernels import exact as _exact
 from .kernels import geometry as _geometry
 from .kernels import ordered as _ordered
 from .kernels.locate import BLOCK
-from .traces import Traces
+from .traces import TraceBuffers, Traces
 
 SEGMENT_BYTES = 12 + 8 + 8  # a cell (3 x int32), t_enter, t_exit
 
@@ -428,8 +428,7 @@ def run_ordered(kernels, inputs, bound_inputs, n_rays, worst, workers, buffers=N
 CONE_PARALLEL_MIN_RAYS = 512
 
 
-def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays,
-                  parallel=True):
+def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays):
     """Trace contiguous chunks of rays, ``starts[c]:starts[c + 1]``, each into its own region.
 
     Each chunk is one ``prange`` iteration and appends to its region; the
@@ -441,16 +440,19 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
     ``regions[c]`` to ``ends[c]``, and ray ``r``'s segments are
     ``offsets[r]:offsets[r + 1]`` (gaps between regions).
 
-    Fewer rays than ``CONE_PARALLEL_MIN_RAYS`` (a gaze's cone), one
-    thread, or ``parallel=False``: the rays are bounded and traced in order
-    on this thread by ``exact.trace_span``, the regions back to back (no
-    gaps). The chunks are the same, so what is summed per chunk is too.
+    Fewer rays than ``CONE_PARALLEL_MIN_RAYS`` (a gaze's cone), or one
+    thread: the rays are traced as ``trace_many`` traces them on one thread
+    (``run_exact``, into this Python thread's ``TraceBuffers``), the regions
+    back to back (no gaps). The chunks are the same, so what is summed per
+    chunk is too.
     """
     start = time.perf_counter()
     n_rays = origins.shape[0]
-    if not parallel or n_rays < CONE_PARALLEL_MIN_RAYS or numba.get_num_threads() == 1:
-        return _trace_regions_serial(grid, origins, directions, t_max, args, starts,
-                                     segment_arrays, start)
+    if n_rays < CONE_PARALLEL_MIN_RAYS or numba.get_num_threads() == 1:
+        traces = run_exact(grid, origins, directions, t_max, False, _cone_buffers())
+        regions = traces.offsets[starts]
+        return (starts, regions, regions[1:].copy(), traces.offsets, traces.cells,
+                traces.t_enter, traces.t_exit)
     cumulative = np.zeros(n_rays + 1, dtype=np.int64)
     bound_counts(origins, directions, args, cumulative[1:])
     np.cumsum(cumulative, out=cumulative)
@@ -467,27 +469,12 @@ def trace_regions(grid, origins, directions, t_max, args, starts, segment_arrays
     return starts, regions, ends, offsets, cells, t_enter, t_exit
 
 
-def _trace_regions_serial(grid, origins, directions, t_max, args, starts, segment_arrays, start):
-    """``trace_regions`` on this thread: a bound pass, then the rays in order, back to back."""
-    n_rays = origins.shape[0]
-    size = int(_geometry.scratch_size(*grid.shape))
-    times = np.empty((3, size), dtype=np.float64)
-    zones = np.empty((3, size), dtype=np.int64)
-    lookups = np.empty(8, dtype=np.int64)
-    offsets = np.empty(n_rays + 1, dtype=np.int64)
-    offsets[0] = 0
-    _exact.trace_span(0, n_rays, origins, directions, t_max, args, times, zones, lookups,
-                      _exact.BOUND, *_NO_SEGMENTS, offsets, 0, np.iinfo(np.int64).max)
-    total = int(offsets[1:].sum()) + int(_geometry.max_segments(*grid.shape))
-    validate.fits("n_rays", total * SEGMENT_BYTES + 16 * n_rays,
-                  f"tracing {n_rays:,} rays of cones (at most {total:,} segments)")
-    cells, t_enter, t_exit = segment_arrays(total)
-    start = lap("bound", start)
-    _exact.trace_span(0, n_rays, origins, directions, t_max, args, times, zones, lookups,
-                      _exact.TRACE, cells, t_enter, t_exit, offsets, 0, total)
-    regions = offsets[starts]
-    lap("trace", start)
-    return starts, regions, regions[1:].copy(), offsets, cells, t_enter, t_exit
+def _cone_buffers():
+    """Return this Python thread's ``TraceBuffers`` for cones traced on one thread."""
+    held = getattr(_scratch, "cone_buffers", None)
+    if held is None:
+        held = _scratch.cone_buffers = TraceBuffers()
+    return held
 
 
 _scratch = threading.local()

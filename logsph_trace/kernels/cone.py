@@ -585,9 +585,9 @@ def sparse_cone(offsets, starts, firsts, cells, t_enter, t_exit, weights, log_od
     The sums are the boxes' sums: each chunk of rays adds into its own
     running sum, from 0, in ray order, and the chunks' sums are added
     together in chunk order, as the boxes merge them. Serial: one thread.
-    The cells come back in the order first reached, with each one's box-order
-    key (unique): the caller sorts them by it (``np.argsort``, outside, so
-    that no sort is compiled here).
+    The cells come back in the order the rays first meet them, with each
+    one's box-order key (unique): the caller sorts them by it
+    (``np.argsort``, outside, so that no sort is compiled here).
     """
     n_chunks = starts.shape[0] - 1
     length = 0
