@@ -690,12 +690,12 @@ def _mark_scan_kernel(first_row, origin, points, max_range, grid, zone, times, z
         oy = origin[1]
         oz = origin[2]
         dx, dy, dz, distance, is_hit, is_ray = _walk.sensor_ray(points, row, ox, oy, oz,
-                                                                     max_range)
+                                                                max_range)
         hits[row] = -1
         if is_ray:
             hits[row] = _walk.walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, zone[0],
-                                            zone[1], zone[2], grid, times[:, :, k],
-                                            zones[:, :, k], lookups[k], free, 0)
+                                       zone[1], zone[2], grid, times[:, :, k], zones[:, :, k],
+                                       lookups[k], free, 0)
 
 
 @kernel
@@ -710,7 +710,7 @@ def _mark_radial_kernel(points, max_range, grid, per_log, free_extent, hits):
         for zone in range(3):
             guesses[zone] = -1
         column, free, hits[row] = _radial.radial_ray(points, row, max_range, grid, per_log,
-                                                        guesses)
+                                                     guesses)
         if column >= 0 and free > 0:
             cuda.atomic.max(free_extent, column, free)
 
@@ -731,7 +731,7 @@ def _apply_scan_kernel(log_odds, free, hit, n_rho, log_hit, log_miss, log_min, l
         n_columns = free.shape[0] // n_rho
         cell = (index % n_rho) * n_columns + index // n_rho
         _update._update(log_odds, cell, hit[index] != 0, free[index] != 0, log_hit, log_miss,
-                           log_min, log_max)
+                        log_min, log_max)
 
 
 @kernel
@@ -743,7 +743,7 @@ def _apply_radial_kernel(log_odds, free_extent, hit, log_hit, log_miss, log_min,
         free = cell // n_columns < free_extent[cell % n_columns]
         if free or hit[cell] != 0:
             _update._update(log_odds, cell, hit[cell] != 0, free, log_hit, log_miss, log_min,
-                               log_max)
+                            log_max)
 
 
 @kernel

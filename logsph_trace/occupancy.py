@@ -200,8 +200,8 @@ def _mark_off_centre(grid, origin, points, max_range, free, hits, words, view, w
     _coherent.mark_candidates(origin, args, masks, skip, per_side, rays, view, boxes, limit,
                              workers)
     started, ended, straight = _coherent.mark_scan(origin, points, max_range, args, free, hits,
-                                                  _coherent.WALK_OTHERS, coarse_bins, first, bins,
-                                                  limit, skip, workers)
+                                                   _coherent.WALK_OTHERS, coarse_bins, first,
+                                                   bins, limit, skip, workers)
     return int(started), int(ended), int(straight)
 
 
@@ -484,10 +484,10 @@ class OccupancyGrid:
                     _zeroed_scratch("hit_mask", (n_cells,), np.uint8) as hit_mask:
                 start = lap("prepare", start)
                 _radial.mark_radial(points, max_range, grid.kernel_args(), free_extent, hits,
-                                     threads)
+                                    threads)
                 start = lap("mark", start)
                 _radial.apply_radial(log_odds, free_extent, hits, hit_mask,
-                                      grid.n_theta, grid.n_phi, *update, threads)
+                                     grid.n_theta, grid.n_phi, *update, threads)
                 lap("apply", start)
         else:
             # Each ray's direction, length and hit are set up in the kernels, in
@@ -501,7 +501,7 @@ class OccupancyGrid:
                                  threads)
                 start = lap("mark", start)
                 _update.apply_scan(log_odds, free, words, hits, grid.n_rho,
-                                    view, *update, threads)
+                                   view, *update, threads)
                 lap("apply", start)
         if points.shape[0] and isinstance(hits, np.ndarray) and hits.max() < 0:
             _warn_nothing_inside(grid, points)

@@ -208,6 +208,28 @@ def test_a_large_batch_is_checked_for_finite_values(bad):
     assert mask is None and kept.shape == points.shape
 
 
+@pytest.mark.parametrize("length", [1, 7, 8, 9, 4095, 4096, 4097, 3 * 4096 + 13])
+def test_the_finite_check_finds_one_bad_value_at_any_place(length):
+    # The finite check every input goes through: a bad value is found at the
+    # start, the end and throughout, and the largest, smallest and
+    # signed-zero finite values pass.
+    from logsph_trace import _validate
+
+    values = np.random.default_rng(length).normal(size=length)
+    values[::5] = 1.7976931348623157e308
+    values[1::7] = -5e-324
+    values[2::11] = -0.0
+    assert _validate._all_finite(values)
+    places = sorted({0, length - 1, *range(0, length, max(1, length // 40)),
+                     *range(max(0, length - 17), length)})
+    for place in places:
+        for bad in (np.nan, np.inf, -np.inf):
+            changed = values.copy()
+            changed[place] = bad
+            assert not _validate._all_finite(changed), (place, bad)
+    assert _validate._all_finite(np.empty(0))
+
+
 def _rays_step_by_step(origins, directions):
     """What ``_validate.rays`` does for a small batch: each check in turn."""
     from logsph_trace import _validate

@@ -31,7 +31,6 @@ cell to extend, leaving or entering the grid) read the last segment back.
 Every loop runs over a count fixed beforehand, at most ``scratch_size``.
 """
 
-
 import numpy as np
 from numba import prange
 
@@ -47,9 +46,7 @@ from .geometry import (
     ray_start,
     segments_bound,
 )
-from .locate import (
-    per_log_of,
-)
+from .locate import per_log_of
 from .ordered import advance, buffer_of, chain, post, rows_of, take
 
 # ``trace_span``'s ``bounds_only``: trace the rays, or only bound their segments.

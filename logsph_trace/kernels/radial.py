@@ -6,7 +6,6 @@ shell of its end point: ``mark_radial`` raises each column's free extent
 ray's hit cell; ``apply_radial`` updates the free runs and the hits.
 """
 
-
 import numpy as np
 from numba import prange
 

@@ -5,7 +5,6 @@
 flagged cell once, so the map does not depend on the number of threads.
 """
 
-
 import numpy as np
 from numba import prange
 
