@@ -5,8 +5,8 @@ beside the package. A robot, or a container image built once and started
 many times, can pay that cost at install time instead of on its first gaze:
 run :func:`warmup` (or ``logsph-trace warmup``) where the package is
 installed, as the user who will run it, on the same kind of CPU. The paths
-a call takes depend on the machine's thread count (two threads take one
-parallel design, more take another), so run it on the machine itself.
+a call takes depend on the machine's thread count (one thread compiles no
+parallel kernel), so run it on the machine itself.
 """
 
 import time
@@ -19,10 +19,11 @@ def warmup():
 
     Covers each ``trace`` method, ``trace_many`` on one thread and on all
     (a batch large enough to take the parallel path), cones one at a time
-    and in batches, the occupancy map from the centre, off it and from the
-    gap with labels (a scan large enough for the coherent scan), depth
-    images, fixation, objects and point look-ups. The CPU only: the GPU's
-    kernels compile on their first ``device="cuda"`` call.
+    (small ones, traced on one thread, and large ones) and in batches, the
+    occupancy map from the centre, off it and from the gap with labels (a
+    scan large enough for the coherent scan), depth images, fixation, objects
+    and point look-ups. The CPU only: the GPU's kernels compile on their first
+    ``device="cuda"`` call.
 
     Returns
     -------
@@ -44,7 +45,7 @@ def warmup():
         trace_cones,
         trace_many,
     )
-    from ._batching import PARALLEL_MIN_RAYS
+    from ._batching import CONE_PARALLEL_MIN_RAYS, PARALLEL_MIN_RAYS
     from ._validate import PARALLEL_CHECK_ROWS
     from .occupancy import COHERENT_MIN_RAYS
     from .sensor import DEFAULT_ROTATION
@@ -57,7 +58,12 @@ def warmup():
     rays = rng.normal(size=(PARALLEL_MIN_RAYS, 6))
     for parallel in (False, True):
         trace_many(grid, rays, parallel=parallel)
-    trace_cone(grid, (0.4, 1.0, 1.5), (-0.2, -0.5, -1.0), np.radians(5))
+    # Towards the map's centre (summed cell by cell) and away (in boxes).
+    eyes = (0.4, 1.0, 1.5)
+    looks = ((-0.2, -0.5, -1.0), (0.2, -0.5, 1.0))
+    for look in looks:
+        for n_rays in (None, CONE_PARALLEL_MIN_RAYS):
+            trace_cone(grid, eyes, look, np.radians(5), n_rays=n_rays)
     trace_cones(grid, [(0.4, 1.0, 1.5), (0.0, 0.0, 0.0)], [(-0.2, -0.5, -1.0), (0, 0, 1)],
                 np.radians(5))
     grid.cell_of(rng.normal(size=(64, 3)))
@@ -77,7 +83,9 @@ def warmup():
     gaze = gaze_from_pitch_yaw(-0.3, 3.0, (0.2, -0.3, 1.0))
     gaze_targets(bvm, gaze)
     fixation_probability(bvm, gaze)
-    fixation_probability(bvm, gaze, half_angle=np.radians(5))
+    for look in looks:
+        for n_rays in (None, CONE_PARALLEL_MIN_RAYS):
+            fixation_probability(bvm, eyes, look, half_angle=np.radians(5), n_rays=n_rays)
     label_objects(bvm, replace=True)
     gaze_objects(bvm, gaze)
     return time.perf_counter() - start
