@@ -303,7 +303,7 @@ def gaze_objects(occupancy, gaze, direction=None, half_angle=DEFAULT_HALF_ANGLE,
     cells = fixation_probability(occupancy, origin, direction, half_angle=half_angle,
                                  n_rays=n_rays, **fixation)
     with occupancy._lock:
-        labels = occupancy.labels[tuple(cells.cells.T)].astype(np.int64)
+        labels = occupancy._frame_labels()[tuple(cells.cells.T)].astype(np.int64)
         labelled = labels > 0
         unlabelled = float(cells.values[~labelled].sum())
         if not np.any(labelled):
@@ -331,7 +331,7 @@ def gaze_objects(occupancy, gaze, direction=None, half_angle=DEFAULT_HALF_ANGLE,
 
 def _centroids(occupancy, ids):
     """Mean cell centre and cell count of each label in ``ids`` (sorted), in one pass."""
-    flat = occupancy.labels.reshape(-1)
+    flat = occupancy._frame_labels().reshape(-1)
     where = np.flatnonzero(np.isin(flat, ids))
     which = np.searchsorted(ids, flat[where])
     cells = np.stack(np.unravel_index(where, occupancy.grid.shape), axis=1)

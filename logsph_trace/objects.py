@@ -56,20 +56,35 @@ def label_objects(occupancy, threshold=0.6, exclude=None, min_cells=1, replace=F
     """
     _check(occupancy)
     min_cells = validate.count("min_cells", min_cells)
+    threshold = validate.probability("threshold", threshold)
     grid = occupancy.grid
-    occupied = np.zeros(grid.shape, dtype=bool)
-    occupied[tuple(occupancy.occupied(threshold).T)] = True
     if exclude is not None:
         mask = np.asarray(exclude)
         if mask.shape != grid.shape or mask.dtype != np.bool_:
             raise ValueError(f"exclude must be a boolean array of shape {grid.shape}, got "
                              f"{mask.dtype} of shape {mask.shape}")
-        occupied &= ~mask
-    detected = None if replace else occupancy.labels
+    with occupancy._lock:
+        if exclude is not None:
+            occupancy.recentre()  # the mask is in the robot's frame
+        # Components are the same in any frame: they are found in the cells
+        # as the map holds them, so a moved map is not resampled for them.
+        log_odds, held = occupancy._held()
+        labels, count = _components(log_odds > float(np.log(threshold / (1.0 - threshold))),
+                                    None if exclude is None else mask,
+                                    None if replace else held, grid.theta_full, min_cells)
+        if labels is not None:
+            occupancy._hold_labels(labels)
+    return count
+
+
+def _components(occupied, exclude, detected, theta_full, min_cells):
+    """``label_objects`` on the arrays: return (labels or None to keep the map's, count)."""
+    if exclude is not None:
+        occupied &= ~exclude
     if detected is not None:
         occupied &= detected == 0
-    labels = np.zeros(grid.shape, dtype=np.int32)
-    count = int(_kernels.components(occupied, grid.theta_full, labels))
+    labels = np.zeros(occupied.shape, dtype=np.int32)
+    count = int(_kernels.components(occupied, theta_full, labels))
     if min_cells > 1 and count:
         kept = np.bincount(labels.ravel(), minlength=count + 1) >= min_cells
         kept[0] = False
@@ -83,9 +98,8 @@ def label_objects(occupancy, threshold=0.6, exclude=None, min_cells=1, replace=F
                              f"{validate.LARGEST_LABEL:,}: pass replace=True")
         labels = np.where(labels > 0, labels + offset, detected).astype(np.int32)
     elif detected is not None:
-        return 0
-    occupancy.labels = labels
-    return count
+        return None, 0
+    return labels, count
 
 
 class Plane(NamedTuple):

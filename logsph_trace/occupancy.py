@@ -28,7 +28,8 @@ from .kernels import coherent as _coherent
 from .kernels import radial as _radial
 from .kernels import update as _update
 from .kernels.geometry import AT_CENTRE
-from .sensor import depth_to_points
+from .motion import column_directions, compose, resample, rigid_motion, unshared
+from .sensor import depth_to_points, pose_of
 from .trace import cuda_backend
 
 
@@ -110,6 +111,10 @@ def _coarsening(per_side, n_rays, extent):
     per_bin = n_rays / max(area * (0.5 * per_side) ** 2, 1.0)
     return min(max(round(math.sqrt(RAYS_PER_SAMPLE / per_bin)), 1), BINS_PER_CELL)
 
+
+# ``move`` resamples the map once the robot is this far from the map's centre,
+# as a fraction of rho_min (see OccupancyGrid.move).
+RECENTRE_DISTANCE = 0.5
 
 # A scan's flags (a byte per cell, shared by the threads) are kept zero for
 # this Python thread's next scan up to this size; a larger set is freed
@@ -280,7 +285,8 @@ class OccupancyGrid:
     grid : Grid
         Read-only: a map's cells are fixed when it is made.
     log_odds : numpy.ndarray, float32, C-contiguous, shape ``grid.shape``
-        0 is unknown (p = 0.5). Its values may be changed in place, its
+        0 is unknown (p = 0.5), in the robot's frame (after a :meth:`move`,
+        read it again). Its values may be changed in place, its
         shape and dtype may not (the next use raises ValueError), and it must
         stay writeable for the calls that use it in a kernel.
         Assigning an array checks its shape and values and stores a
@@ -300,6 +306,9 @@ class OccupancyGrid:
 
     Notes
     -----
+    The map is egocentric: :meth:`move` tells it the robot moved, and every
+    later input, answer and array is in the robot's new frame.
+
     A map may be shared by threads: its methods, the assignments above and
     the gaze functions that read it take turns on a lock of the map's own,
     so each scan is applied whole. Changing ``log_odds`` in place, outside
@@ -323,6 +332,13 @@ class OccupancyGrid:
         self._lock = threading.RLock()  # one thread at a time changes or reads the map
         self._last_scan = None
         self._labels = np.zeros(grid.shape, dtype=np.int32)
+        # The robot's pose in the frame the arrays are held in (None: the
+        # same frame), and the arrays resampled into the robot's frame for
+        # it (None until a call needs them); see move.
+        self._pose = None
+        self._view = None
+        self._directions = None
+        self._spare = None  # arrays the map let go of, for the next resampling
         self.p_hit, self.p_miss, self.p_min, self.p_max = p_hit, p_miss, p_min, p_max
         if log_odds is None:
             log_odds = np.zeros(grid.shape, dtype=np.float32)
@@ -331,6 +347,7 @@ class OccupancyGrid:
     def __getstate__(self):
         state = self.__dict__.copy()
         del state["_lock"]  # a lock is not copied: each copy gets its own
+        state["_view"] = state["_spare"] = None  # caches, made again when needed
         return state
 
     def __setstate__(self, state):
@@ -344,8 +361,14 @@ class OccupancyGrid:
 
     @property
     def log_odds(self):
-        """Log-odds per cell, float32, shape ``grid.shape`` (see the class docstring)."""
-        return self._log_odds
+        """Log-odds per cell, float32, shape ``grid.shape`` (see the class docstring).
+
+        After a :meth:`move` reading it resamples the map into the robot's
+        frame first (:meth:`recentre`).
+        """
+        with self._lock:
+            self.recentre()
+            return self._log_odds
 
     @log_odds.setter
     def log_odds(self, value):
@@ -354,7 +377,9 @@ class OccupancyGrid:
         # bounds, lost in a copy, or refused by Numba.
         value = validate.log_odds(value, self._grid.shape)
         with self._lock:
+            self.recentre()  # the labels into the frame the new values are in
             self._log_odds = value if self._cuda is None else self._cuda.to_device(value)
+            self._drop_view()
 
     @property
     def device(self):
@@ -362,13 +387,137 @@ class OccupancyGrid:
         return self._device
 
     def _host_log_odds(self):
-        """Return the log-odds as a numpy array (a copy from a GPU map)."""
-        return self._checked(write=False) if self._cuda is None else self._log_odds.copy_to_host()
+        """Return the log-odds in the robot's frame as a numpy array (a copy from a GPU map)."""
+        return self._frame()[0] if self._cuda is None else self._log_odds.copy_to_host()
 
     def _flat(self):
-        """Return the log-odds as a flat array of ``grid.size`` cells, where they live."""
-        log_odds = self._log_odds if self._cuda is not None else self._checked()
+        """Return the log-odds in the robot's frame, flat, where they live."""
+        log_odds = self._log_odds if self._cuda is not None else self._frame(write=True)[0]
         return log_odds.reshape(log_odds.size)
+
+    def _frame(self, write=False):
+        """Return (log_odds, labels) on the host, in the robot's frame.
+
+        Held as they are when the robot has not moved since the map was last
+        centred on it; otherwise resampled (:func:`~logsph_trace.motion.resample`)
+        and kept until the map or the pose changes. Neither is to be written;
+        ``write``: check that the held log-odds are writeable all the same
+        (a kernel is compiled for writeable arrays only).
+        """
+        log_odds = self._checked(write)
+        if self._pose is None:
+            return log_odds, self._labels
+        if self._view is None:
+            if self._directions is None:
+                self._directions = column_directions(self.grid)
+            spare, self._spare = self._spare, None
+            self._view = resample(self.grid, log_odds, self._labels, *self._pose,
+                                  self._directions, spare)
+        return self._view
+
+    def _let_go(self, arrays):
+        """Keep ``arrays`` (log_odds, labels), no longer used, for the next resampling.
+
+        Only if nothing else holds them (``motion.unshared``).
+        """
+        if arrays is not None and unshared(arrays[0]) and unshared(arrays[1]):
+            self._spare = arrays
+
+    def _drop_view(self):
+        """Forget the resampled arrays: the map or the pose changed."""
+        view, self._view = self._view, None
+        self._let_go(view)
+
+    def _held(self):
+        """Return (log_odds, labels) on the host as the map holds them (see :meth:`move`)."""
+        if self._cuda is None:
+            return self._checked(write=False), self._labels
+        return self._log_odds.copy_to_host(), self._labels
+
+    def _hold_labels(self, labels):
+        """Replace the labels as the map holds them (int32, ``grid.shape``, checked)."""
+        self._labels = labels
+        self._drop_view()
+
+    def _frame_labels(self):
+        """Return the labels in the robot's frame, on the host (not to be written)."""
+        return self._labels if self._pose is None else self._frame()[1]
+
+    @interrupts_after
+    @_one_at_a_time
+    def move(self, motion):
+        """Tell the map the robot moved: later inputs, answers and arrays are in its new frame.
+
+        Parameters
+        ----------
+        motion : array_like (4, 4), or (R, t)
+            The robot's new pose in its old frame, as odometry gives it
+            (ROS's ``T_old_new``): a point ``p`` in the old frame is
+            ``R^T (p - t)`` in the new one. ``R`` must be a rotation
+            (orthonormal within 1e-6, determinant +1).
+
+        Returns
+        -------
+        self
+
+        Raises
+        ------
+        ValueError
+            ``motion`` is not a rigid motion (scaled, reflected, not
+            finite, wrong shape); the map is left as it was.
+        NotImplementedError
+            On a GPU map (``device="cuda"``): move a host copy
+            (:meth:`to_host`) instead.
+
+        Notes
+        -----
+        The map keeps its cells where they are and the robot's pose within
+        them: a scan or a gaze is taken into the map's cells through that
+        pose, exactly, so moving costs nothing by itself. The map is
+        resampled onto cells centred on the robot (:meth:`recentre`) when
+        the robot has walked ``RECENTRE_DISTANCE`` (half) of ``rho_min``
+        from the map's centre, or when ``log_odds`` or ``labels`` are read.
+        Answers (:func:`~logsph_trace.gaze_objects`, :meth:`occupied`,
+        :attr:`probability`) read a resampled copy, kept until the map or
+        the pose changes. Each resampling blurs a little; this way a map
+        is resampled about once per ``rho_min / 2`` walked, not once per
+        frame (``python -m bench.egomotion`` measures both).
+        ``docs/how-to/moving-robot.md`` shows the loop.
+        """
+        if self._cuda is not None:
+            raise NotImplementedError("move is not implemented for a GPU map; move a host copy "
+                                      "(to_host()) instead")
+        motion = rigid_motion(motion)
+        pose = motion if self._pose is None else compose(self._pose, motion)
+        if np.array_equal(pose[0], np.eye(3)) and not np.any(pose[1]):
+            pose = None
+        self._pose = pose
+        self._drop_view()
+        if pose is not None and (math.hypot(*pose[1].tolist())
+                                 >= RECENTRE_DISTANCE * self.grid.rho_min):
+            self.recentre()
+        return self
+
+    @interrupts_after
+    @_one_at_a_time
+    def recentre(self):
+        """Resample the map onto cells centred on the robot now; return self.
+
+        :meth:`move` does it when the robot has walked far from the map's
+        centre, and reading ``log_odds`` or ``labels`` does it; otherwise
+        there is no need. Each new cell takes the value and label of the
+        old cell that covers the most of its column's centre ray within
+        its shell, traced exactly through the old cells
+        (:func:`~logsph_trace.motion.resample`); cells from outside the old
+        region are unknown.
+        """
+        if self._pose is not None:
+            self._frame()
+            held = self._log_odds, self._labels
+            (self._log_odds, self._labels), self._view = self._view, None
+            self._pose = None
+            self._let_go(held)
+        return self
 
     def _checked(self, write=True):
         """Return the host map, after checking it is still what the kernels index.
@@ -442,6 +591,13 @@ class OccupancyGrid:
         the next scan in the same Python thread, up to 128 MB, so that
         repeated scans do not zero fresh memory each time.
         """
+        return self._integrate(points, sensor_origin, max_range, invalid, labels, self._pose)
+
+    def _integrate(self, points, sensor_origin, max_range, invalid, labels, pose):
+        """Integrate as ``integrate`` does, after taking the scan through ``pose``.
+
+        ``pose`` ((R, t) or None): into the frame the map is held in.
+        """
         start = time.perf_counter()
         validate.choice("invalid", invalid, ("raise", "skip"))
         rows = np.shape(points)[0] if np.ndim(points) == 2 else 1  # labels must match these
@@ -455,6 +611,9 @@ class OccupancyGrid:
             if keep is not None:
                 labels = labels[keep]
         origin = validate.point("sensor_origin", sensor_origin, validate.reach(self.grid))
+        if pose is not None:
+            points = points @ pose[0].T + pose[1]
+            origin = pose[0] @ origin + pose[1]
         if math.hypot(*origin.tolist()) < AT_CENTRE * self.grid.rho_max:
             origin = np.zeros(3)  # at the centre, as a trace from there is (AT_CENTRE)
         at_centre = not any(origin.tolist())  # every ray radial: the egocentric case
@@ -468,7 +627,9 @@ class OccupancyGrid:
         # (16 more; measured: 39 and 118 MB for 5,000,000 points).
         validate.fits("points", points.shape[0] * (8 if at_centre else 24),
                       f"integrating {points.shape[0]:,} points")
-        log_odds = self._flat()
+        log_odds = self._log_odds if self._cuda is not None else self._checked()
+        log_odds = log_odds.reshape(log_odds.size)
+        self._drop_view()
         self._last_scan = ScanStats(points.shape[0], skipped)
         grid = self.grid
         n_cells = math.prod(grid.shape)
@@ -519,14 +680,19 @@ class OccupancyGrid:
 
         Voted in by :meth:`integrate` and :meth:`integrate_depth` with
         ``labels``, or found by :func:`label_objects`. Assigning checks the
-        shape and that the values are integers >= 0.
+        shape and that the values are integers >= 0. After a :meth:`move`,
+        reading or assigning it resamples the map into the robot's frame
+        first (:meth:`recentre`).
         """
-        return self._labels
+        with self._lock:
+            self.recentre()
+            return self._labels
 
     @labels.setter
     def labels(self, value):
         labels = validate.labels("labels", value, self.grid.shape)
         with self._lock:
+            self.recentre()
             self._labels = labels.astype(np.int32)
 
     def _vote(self, hits, labels):
@@ -558,7 +724,7 @@ class OccupancyGrid:
         From a GPU map only these cells are copied.
         """
         if self._cuda is None:
-            return self._checked(write=False)[tuple(np.asarray(cells).T)]
+            return self._frame()[0][tuple(np.asarray(cells).T)]
         flat = np.ravel_multi_index(tuple(np.asarray(cells).T), self.grid.shape)
         return self._cuda.values_at(self._flat(), flat.astype(np.int64))
 
@@ -570,6 +736,7 @@ class OccupancyGrid:
         """
         return self._last_scan
 
+    @interrupts_after
     @_one_at_a_time
     def integrate_depth(self, depth, intrinsics, pose=None, max_range=None, depth_scale=1.0,
                         labels=None):
@@ -587,7 +754,8 @@ class OccupancyGrid:
         intrinsics : array_like
             A 3 x 3 camera matrix (OpenCV's) or ``(fx, fy, cx, cy)``, pixels.
         pose : None, array_like (4, 4), or (R, t)
-            Camera (OpenCV frame: x right, y down, z forward) to map.
+            Camera (OpenCV frame: x right, y down, z forward) to map (the
+            robot's frame, after a :meth:`move`).
             ``None``: the camera at the map's origin looking along +z with
             image-up along +y, so OpenCV's (x, y, z) is the map's (-x, -y, z).
             ``docs/how-to/frames.md`` draws it.
@@ -605,12 +773,13 @@ class OccupancyGrid:
         -------
         self
         """
+        if self._pose is not None:  # the camera in the frame the map is held in
+            pose = compose(self._pose, pose_of(pose))
         scan = depth_to_points(depth, intrinsics, pose, depth_scale)
         if labels is not None:
             labels = validate.labels("labels", labels, np.shape(depth))
             labels = labels[scan.pixels[:, 0], scan.pixels[:, 1]]
-        self.integrate(scan.points, scan.origin, max_range=max_range, invalid="skip",
-                       labels=labels)
+        self._integrate(scan.points, scan.origin, max_range, "skip", labels, None)
         self._last_scan = ScanStats(self._last_scan.rays, self._last_scan.invalid + scan.invalid)
         return self
 
@@ -626,6 +795,7 @@ class OccupancyGrid:
         if self._cuda is None:
             log_odds = self._checked()
             np.multiply(log_odds, np.float32(factor), out=log_odds)
+            self._drop_view()
         else:
             self._cuda.decay(self._flat(), np.float32(factor))
         return self
@@ -637,13 +807,20 @@ class OccupancyGrid:
         As :func:`numpy.savez`, ``.npz`` is added to a name without it. The
         write is atomic: if it fails or is interrupted, an existing file of
         that name is left as it was and no partial file remains. A GPU map
-        is copied to the host first.
+        is copied to the host first. A map the robot has moved in since it
+        was last centred is saved as it is held, with the robot's pose in
+        it, so that loading it and moving on resamples no more than
+        before.
         """
         grid = self.grid
         path = npz_path(path)
+        pose = np.eye(4)
+        if self._pose is not None:
+            pose[:3, :3], pose[:3, 3] = self._pose
+        log_odds = self._checked(write=False) if self._cuda is None else self._host_log_odds()
         with atomic_write(path) as stream:
             write_npz(
-                stream, compress=True, log_odds=self._host_log_odds(), labels=self._labels,
+                stream, compress=True, log_odds=log_odds, labels=self._labels, pose=pose,
                 rho_edges=grid.rho_edges,
                 theta_edges=grid.theta_edges, phi_edges=grid.phi_edges,
                 spacing=np.array(grid.spacing),
@@ -681,6 +858,7 @@ class OccupancyGrid:
                     raise ValueError(f"probabilities must hold 4 numbers, got {probabilities}")
                 log_odds = data["log_odds"]
                 labels = data["labels"] if "labels" in data.files else None  # older files
+                pose = rigid_motion(data["pose"], "pose") if "pose" in data.files else None
         except (FileNotFoundError, PermissionError, IsADirectoryError):
             raise
         except (ValueError, TypeError, KeyError, IndexError, EOFError, OSError, OverflowError,
@@ -690,6 +868,11 @@ class OccupancyGrid:
             occupancy = cls(grid, *probabilities.tolist(), log_odds=log_odds, device=device)
             if labels is not None:
                 occupancy.labels = labels
+            if pose is not None and (not np.array_equal(pose[0], np.eye(3)) or np.any(pose[1])):
+                if device == "cuda":
+                    raise ValueError("the map was saved after a move, which a GPU map cannot "
+                                     "hold; load it on the CPU")
+                occupancy._pose = pose
             return occupancy
         except ValueError as error:
             raise ValueError(f"{path} is not a valid OccupancyGrid file: {error}") from None
@@ -732,6 +915,8 @@ def _check_headers(path):
             raise ValueError(f"{name} must be 1-D with at least 2 numbers, got shape {edges} "
                              f"of {dtype}")
         shape.append(edges[0] - 1)
+    if "pose" in headers and headers["pose"][0] != (4, 4):
+        raise ValueError(f"pose must have shape (4, 4), got {headers['pose'][0]}")
     for name, kinds in (("log_odds", "iuf"), ("labels", "iub")):
         if name not in headers:
             continue

@@ -124,3 +124,72 @@ def table_scene():
     eyes = np.array([1.0, 0.15, 1.1])
     target = np.array([0.0, -0.42, 1.65])
     return scene, eyes, target
+
+
+def room_scene():
+    """Build the Fig. 5 set-up with a side wall and a shelf on the robot's right (+x).
+
+    A robot that turns towards +x keeps seeing something: the table and its
+    object drift out of view and behind the camera, the shelf comes in.
+    Returns the scene; its box ``b`` is object ``b + 1`` in a labelled map.
+    """
+    scene, _, _ = table_scene()
+    return Scene(scene.boxes + (
+        Box("side wall", (2.6, -1.5, -1.0), (2.7, 1.5, 3.5)),
+        Box("shelf", (1.9, -0.9, 0.6), (2.3, 0.4, 1.3)),
+    ))
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step of a simulated robot (see :func:`robot_walk`), in metres.
+
+    Attributes
+    ----------
+    motion : numpy.ndarray, shape (4, 4)
+        The robot's pose after the step in its frame before it (odometry's
+        ``T_old_new``; the identity for the first step).
+    pose : numpy.ndarray, shape (4, 4)
+        The robot's pose in the world (the frame of the scene).
+    points : numpy.ndarray, shape (M, 3)
+        The depth sensor's points in the robot's frame (the sensor at its
+        origin, looking along +z, image-up +y).
+    labels : numpy.ndarray, int64, shape (M,)
+        The box each point lies on, plus one (0 is none).
+    """
+
+    motion: np.ndarray
+    pose: np.ndarray
+    points: np.ndarray
+    labels: np.ndarray
+
+
+def yaw_pose(yaw, position):
+    """Return a 4 x 4 pose: a turn by ``yaw`` radians about +y (+z to +x), then ``position``."""
+    cos, sin = np.cos(yaw), np.sin(yaw)
+    pose = np.eye(4)
+    pose[:3, :3] = [[cos, 0.0, sin], [0.0, 1.0, 0.0], [-sin, 0.0, cos]]
+    pose[:3, 3] = position
+    return pose
+
+
+def robot_walk(scene, steps=40, turn=np.radians(80.0), walk=(0.4, 0.0, 0.0), width=640,
+               height=480):
+    """Yield the :class:`Step` s of a robot that turns and walks while its depth sensor looks on.
+
+    The robot starts at the scene's origin looking along +z, and in
+    ``steps`` equal steps turns by ``turn`` radians about +y (towards +x)
+    and walks by ``walk`` (world frame, metres). Each step, the first
+    included (no motion), renders a ``width`` x ``height`` scan from the
+    robot's new pose.
+    """
+    walk = validate.vector("walk", walk)
+    before = None
+    for step in range(steps + 1):
+        pose = yaw_pose(turn * step / steps, walk * step / steps)
+        rotation, position = pose[:3, :3], pose[:3, 3]
+        points, boxes, _ = scene.depth_points(position, width, height,
+                                              forward=rotation[:, 2], up=rotation[:, 1])
+        motion = np.eye(4) if before is None else np.linalg.inv(before) @ pose
+        yield Step(motion, pose, (points - position) @ rotation, boxes + 1)
+        before = pose

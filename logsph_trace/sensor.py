@@ -83,7 +83,7 @@ def intrinsics_of(intrinsics):
     return float(fx), float(fy), float(cx), float(cy), float(skew)
 
 
-def pose_of(pose):
+def pose_of(pose, name="pose"):
     """Check a camera pose: return (R (3, 3), t (3,)), camera to map.
 
     Parameters
@@ -94,21 +94,23 @@ def pose_of(pose):
         transform with last row ``(0, 0, 0, 1)``, or a rotation matrix and a
         translation. ``R`` must be a rotation (orthonormal within 1e-6,
         determinant +1).
+    name : str
+        What the messages call it.
     """
     if pose is None:
         return DEFAULT_ROTATION.copy(), np.zeros(3)
     if isinstance(pose, (tuple, list)) and len(pose) == 2:
         rotation, translation = pose
-        rotation = _finite_array("pose rotation", rotation, (3, 3))
-        translation = _finite_array("pose translation", translation, (3,))
+        rotation = _finite_array(f"{name} rotation", rotation, (3, 3))
+        translation = _finite_array(f"{name} translation", translation, (3,))
     else:
-        matrix = _finite_array("pose", pose, (4, 4))
+        matrix = _finite_array(name, pose, (4, 4))
         if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
-            raise ValueError(f"pose's last row must be (0, 0, 0, 1), got {matrix[3].tolist()}")
+            raise ValueError(f"{name}'s last row must be (0, 0, 0, 1), got {matrix[3].tolist()}")
         rotation, translation = matrix[:3, :3].copy(), matrix[:3, 3].copy()
     if (np.max(np.abs(rotation.T @ rotation - np.eye(3))) > 1e-6
             or np.linalg.det(rotation) <= 0.0):
-        raise ValueError(f"pose's rotation must be orthonormal with determinant +1, "
+        raise ValueError(f"{name}'s rotation must be orthonormal with determinant +1, "
                          f"got {rotation.tolist()}")
     return rotation, translation
 

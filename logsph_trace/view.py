@@ -107,7 +107,7 @@ def _draw_cells(go, figure, occupancy, threshold, names):
     if cells.shape[0] > MAX_CELLS:
         cells = cells[:: -(-cells.shape[0] // MAX_CELLS)]
     centres = occupancy.grid.cell_centers(cells) if cells.shape[0] else np.empty((0, 3))
-    labels = occupancy.labels[tuple(cells.T)] if cells.shape[0] else np.empty(0, np.int32)
+    labels = occupancy._frame_labels()[tuple(cells.T)] if cells.shape[0] else np.empty(0, np.int32)
     for label in np.unique(labels).tolist():
         mine = centres[labels == label]
         name = "no object" if label == 0 else names.get(label, f"object {label}")

@@ -186,6 +186,12 @@ def compare_map(arrays, key):
             _close(got, want, f"{key} {step}", problems)
         elif not np.array_equal(got, want):
             problems.append(f"{key} {step}: differs")
+    try:  # a GPU map does not move: a clear error, the map as it was
+        occupancy.move(np.eye(4))
+        problems.append(f"{key}: move on a GPU map raised nothing")
+    except NotImplementedError as error:
+        if "to_host" not in str(error):
+            problems.append(f"{key}: move's error does not say what to do: {error}")
     return problems
 
 

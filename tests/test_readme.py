@@ -75,3 +75,20 @@ def test_docs_link_only_to_files_in_the_repository():
             assert (page.parent / target).exists(), f"{page.name} links to a missing {target}"
         for path in re.findall(r"`((?:bench|docs|tests|notebooks|logsph_trace)/[\w./-]+)`", text):
             assert (ROOT / path).exists(), f"{page.name} names a missing {path}"
+
+
+def test_the_how_to_examples_run_in_a_fresh_process(tmp_path):
+    """Each how-to page's Python blocks run in order, as a reader would paste them
+    (but the GPU page's, which need a GPU)."""
+    env = dict(os.environ, MPLBACKEND="Agg")
+    for page in sorted((ROOT / "docs" / "how-to").glob("*.md")):
+        if page.name == "gpu.md":
+            continue
+        blocks = [code for kind, code in BLOCK.findall(page.read_text()) if kind == "python"]
+        if not blocks:
+            continue
+        result = subprocess.run([sys.executable, "-c", "\n".join(blocks)], cwd=tmp_path,
+                                env=env, capture_output=True, text=True, timeout=600)
+        assert result.returncode == 0, f"{page.name}:\n{result.stderr}"
+        if page.name == "moving-robot.md":
+            assert result.stdout.strip().splitlines()[-1] == "object", result.stdout
