@@ -150,7 +150,7 @@ def figure(grid, maps, path):
 
     scratch = maps["built from scratch in the final frame"] > 0
     panels = len(maps)
-    fig, axes = plt.subplots(1, panels, figsize=(4.2 * panels, 4.4), sharey=True)
+    fig, axes = plt.subplots(1, panels, figsize=(4.2 * panels, 5.0), sharey=True)
     for axis, (title, log_odds) in zip(axes, maps.items()):
         occupied = log_odds > 0
         near = occupied if occupied is scratch else scratch
@@ -164,16 +164,16 @@ def figure(grid, maps, path):
             f, _, _ = f_score(occupied, scratch, grid.theta_full)
             title += f"\nF-score {f:.3f}"
         axis.set_title(title, fontsize=10)
-        axis.set_xlabel("x, robot's right (m)")
+        axis.set_xlabel("x, to the robot's left (m)")
         axis.set_aspect("equal")
-        axis.set_xlim(-3.5, 4.0)
+        axis.set_xlim(4.0, -3.5)  # the robot's left on the left, as seen from above
         axis.set_ylim(-3.0, 4.0)
         axis.plot(0.0, 0.0, "k^", markersize=6)
-    axes[0].set_ylabel("z, robot's forward (m)")
+    axes[0].set_ylabel("z, ahead of the robot (m)")
     axes[-1].legend(loc="lower right", fontsize=8, markerscale=4)
     fig.suptitle("Occupied cells (p > 0.5) after the robot turned 80 degrees and walked 0.4 m, "
                  "seen from above; the robot at the triangle", fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.02, 1.0, 0.95))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

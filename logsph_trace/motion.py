@@ -62,26 +62,6 @@ def column_directions(grid):
     return directions.reshape(-1, 3)
 
 
-def _dilate(mask, reach, wrap):
-    """Mark the entries within ``reach`` of a marked one along axis 0.
-
-    ``reach``: entries, one per column of ``mask``; the axis wraps around
-    when ``wrap``.
-    """
-    n = mask.shape[0]
-    pad = int(reach.max())
-    if wrap:
-        padded = np.concatenate([mask[n - pad:], mask, mask[:pad]]) if pad else mask
-    else:
-        padded = np.pad(mask, ((pad, pad), (0, 0)))
-    sums = np.zeros((padded.shape[0] + 1, mask.shape[1]), dtype=np.int32)
-    np.cumsum(padded, axis=0, out=sums[1:])
-    rows = np.arange(n)[:, None] + pad
-    high = np.take_along_axis(sums, rows + reach[None, :] + 1, axis=0)
-    low = np.take_along_axis(sums, rows - reach[None, :], axis=0)
-    return high > low
-
-
 def _near_seen(grid, seen, delta):
     """Old columns within ``delta`` radians of a column with a known cell, (n_theta, n_phi).
 
@@ -94,7 +74,7 @@ def _near_seen(grid, seen, delta):
     the reach widens towards the poles as ``1 / cos(phi)`` (the haversine
     bound), and a row within ``delta`` of a pole reaches all the way round.
     """
-    seen = seen.reshape(grid.n_theta, grid.n_phi).astype(bool)
+    seen = seen.reshape(grid.n_theta, grid.n_phi)
     half_pi = 0.5 * np.pi
     low = grid.phi_edges[:-1] - delta
     high = grid.phi_edges[1:] + delta
@@ -105,12 +85,13 @@ def _near_seen(grid, seen, delta):
     whole |= ratio >= 1.0
     spread = 2.0 * np.arcsin(np.minimum(ratio, 1.0))
     reach = np.ceil(spread / np.diff(grid.theta_edges).min()).astype(np.int64) + 1
-    whole |= 2 * reach + 1 >= grid.n_theta
-    reach[whole] = 0
-    near = _dilate(seen, reach, grid.theta_full)
-    near[:, whole] = seen[:, whole].any(axis=0)
+    reach[whole] = -1
+    near = np.empty_like(seen)
+    _resample.dilate(seen, reach, grid.theta_full, near)
     rows = math.ceil(delta / np.diff(grid.phi_edges).min()) + 1
-    return _dilate(near.T, np.full(grid.n_theta, rows), False).T
+    out = np.empty_like(seen.T)
+    _resample.dilate(np.ascontiguousarray(near.T), np.full(grid.n_theta, rows), False, out)
+    return out.T
 
 
 def unshared(array):
@@ -166,32 +147,63 @@ def resample(grid, log_odds, labels, rotation, translation, directions=None, out
         out = np.empty(grid.shape, dtype=np.float32), np.empty(grid.shape, dtype=np.int32)
     if directions is None:
         directions = column_directions(grid)
+    flat_log_odds, flat_labels = log_odds.reshape(-1), labels.reshape(-1)
+    out_log_odds, out_labels = out[0].reshape(-1), out[1].reshape(-1)
+    distance = math.hypot(*translation.tolist())
+    if distance == 0.0:
+        turn = whole_cell_turn(grid, rotation)
+        if turn is not None:
+            _resample.roll_columns(flat_log_odds, flat_labels, turn * grid.n_phi, grid.n_rho,
+                                   out_log_odds, out_labels)
+            return out
     plane = grid.n_theta * grid.n_phi
     aimed = np.empty((plane, 3))
     source = np.empty(plane, dtype=np.int64)
     _resample.aim_columns(directions, np.ascontiguousarray(rotation), grid.kernel_args(), aimed,
                           source)
-    flat_log_odds, flat_labels = log_odds.reshape(-1), labels.reshape(-1)
-    out_log_odds, out_labels = out[0].reshape(-1), out[1].reshape(-1)
-    distance = math.hypot(*translation.tolist())
     if distance == 0.0:
         _resample.gather_columns(flat_log_odds, flat_labels, source, grid.n_rho, out_log_odds,
                                  out_labels)
         return out
     if distance < grid.rho_min:
-        seen = np.empty(plane, dtype=np.uint8)
-        _resample.seen_columns(flat_log_odds, grid.n_rho, seen)
+        seen = np.empty(plane, dtype=np.uint32)
+        _resample.seen_columns(flat_log_odds.view(np.uint32), grid.n_rho, seen)
         near = _near_seen(grid, seen, math.asin(distance / grid.rho_min)).reshape(-1)
-        columns = np.flatnonzero((source < 0) | near[np.maximum(source, 0)])
+        columns = np.flatnonzero((source < 0) | (near[np.maximum(source, 0)] != 0))
     else:
         columns = np.arange(plane)
-    out_log_odds.fill(0)
-    out_labels.fill(0)
+    values = np.empty((columns.shape[0], grid.n_rho), dtype=np.float32)
+    value_labels = np.empty((columns.shape[0], grid.n_rho), dtype=np.int32)
     buffers = TraceBuffers()
     for first in range(0, columns.shape[0], COLUMNS_PER_CHUNK):
         chunk = columns[first:first + COLUMNS_PER_CHUNK]
         traces = trace_many(grid, translation, aimed[chunk], out=buffers)
-        _resample.copy_along_columns(chunk, traces.offsets, traces.cells, traces.t_enter,
+        _resample.copy_along_columns(first, traces.offsets, traces.cells, traces.t_enter,
                                      traces.t_exit, grid.rho_edges, flat_log_odds, flat_labels,
-                                     grid.n_phi, out_log_odds, out_labels)
+                                     grid.n_phi, values, value_labels)
+    slot = np.full(plane, -1, dtype=np.int64)
+    slot[columns] = np.arange(columns.shape[0])
+    _resample.place_columns(slot, values, value_labels, out_log_odds, out_labels)
     return out
+
+
+def whole_cell_turn(grid, rotation):
+    """Return ``n`` when ``rotation`` turns by ``n`` whole azimuth cells about +y, else None.
+
+    Only on a full-circle grid with equal azimuth cells: there such a turn
+    maps each column onto another, ``n`` cells on (``0 <= n < n_theta``).
+    """
+    if not grid.theta_full or not np.allclose(rotation[1], (0.0, 1.0, 0.0), rtol=0.0,
+                                              atol=1e-12):
+        return None
+    widths = np.diff(grid.theta_edges)
+    cell = 2.0 * np.pi / grid.n_theta
+    if np.max(np.abs(widths - cell)) > 1e-12:
+        return None
+    angle = math.atan2(rotation[0, 2], rotation[0, 0])
+    turn = round(angle / cell)
+    expected = np.array([[math.cos(turn * cell), 0.0, math.sin(turn * cell)], [0.0, 1.0, 0.0],
+                         [-math.sin(turn * cell), 0.0, math.cos(turn * cell)]])
+    if np.max(np.abs(rotation - expected)) > 1e-12:
+        return None
+    return turn % grid.n_theta

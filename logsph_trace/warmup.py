@@ -21,8 +21,8 @@ def warmup():
     (a batch large enough to take the parallel path), cones one at a time
     (small ones, traced on one thread, and large ones) and in batches, the
     occupancy map from the centre, off it and from the gap with labels (a
-    scan large enough for the coherent scan), depth images, fixation, objects
-    and point look-ups. The CPU only: the GPU's kernels compile on their first
+    scan large enough for the coherent scan), depth images, fixation, objects,
+    point look-ups and a map that moves. The CPU only: the GPU's kernels compile on their first
     ``device="cuda"`` call.
 
     Returns
@@ -48,6 +48,7 @@ def warmup():
     from ._batching import CONE_PARALLEL_MIN_RAYS, PARALLEL_MIN_RAYS
     from ._validate import PARALLEL_CHECK_ROWS
     from .occupancy import COHERENT_MIN_RAYS
+    from .scene import yaw_pose
     from .sensor import DEFAULT_ROTATION
 
     start = time.perf_counter()
@@ -88,4 +89,10 @@ def warmup():
             fixation_probability(bvm, eyes, look, half_angle=np.radians(5), n_rays=n_rays)
     label_objects(bvm, replace=True)
     gaze_objects(bvm, gaze)
+    # A robot that moves: a turn by whole cells, a turn, a step (read back).
+    for motion in (yaw_pose(2 * np.pi / 36, (0.0, 0.0, 0.0)), yaw_pose(0.3, (0.0, 0.0, 0.0)),
+                   yaw_pose(0.3, (0.05, 0.0, 0.0))):
+        bvm.move(motion)
+        bvm.log_odds  # noqa: B018 -- reading it resamples
     return time.perf_counter() - start
+

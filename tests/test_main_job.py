@@ -1,5 +1,6 @@
 """The main job: a depth image and a gaze in, the named object out; frames and units."""
 
+import contextlib
 import warnings
 
 import numpy as np
@@ -8,7 +9,7 @@ import pytest
 import logsph_trace as lt
 from logsph_trace import demo
 from logsph_trace.images import read_image
-from logsph_trace.scene import table_scene
+from logsph_trace.scene import table_scene, yaw_pose
 
 GRID = lt.Grid(0.3, 8.0, 64, 360, 180)
 
@@ -223,10 +224,11 @@ def test_the_view_is_one_self_contained_file(bvm, frame, tmp_path):
     assert not (tmp_path / "x.html").exists()
 
 
-def test_after_warmup_the_main_job_compiles_nothing(frame):
+@contextlib.contextmanager
+def _compiles():
+    """Collect the Python functions Numba compiles inside the block."""
     from numba.core import event
 
-    lt.warmup()
     compiled = []
 
     class Listener(event.Listener):
@@ -239,10 +241,32 @@ def test_after_warmup_the_main_job_compiles_nothing(frame):
     listener = Listener()
     event.register("numba:compile", listener)
     try:
+        yield compiled
+    finally:
+        event.unregister("numba:compile", listener)
+
+
+def test_after_warmup_the_main_job_compiles_nothing(frame):
+    lt.warmup()
+    with _compiles() as compiled:
         bvm = lt.OccupancyGrid(GRID).integrate_depth(frame.depth, frame.intrinsics,
                                                      labels=frame.labels)
         gaze = lt.gaze_from_pitch_yaw(np.radians(-52), np.radians(5), demo.EYES)
         assert lt.gaze_objects(bvm, gaze, names=frame.names).top.name == "motorcycle"
-    finally:
-        event.unregister("numba:compile", listener)
+    assert not compiled, [getattr(f, "__qualname__", f) for f in compiled]
+
+
+def test_after_warmup_a_map_that_moves_compiles_nothing(frame):
+    lt.warmup()
+    bvm = lt.OccupancyGrid(GRID).integrate_depth(frame.depth, frame.intrinsics,
+                                                 labels=frame.labels)
+    with _compiles() as compiled:
+        for motion in (yaw_pose(2 * np.pi / GRID.n_theta, (0.0, 0.0, 0.0)),
+                       yaw_pose(0.2, (0.0, 0.0, 0.0)), yaw_pose(-0.1, (0.03, 0.0, 0.01)),
+                       yaw_pose(0.0, (0.2, 0.0, 0.0))):
+            bvm.move(motion)
+            bvm.integrate_depth(frame.depth, frame.intrinsics, labels=frame.labels)
+            gaze = lt.gaze_from_pitch_yaw(np.radians(-52), np.radians(5), demo.EYES)
+            lt.gaze_objects(bvm, gaze)
+            bvm.log_odds  # noqa: B018 -- reading it resamples
     assert not compiled, [getattr(f, "__qualname__", f) for f in compiled]
