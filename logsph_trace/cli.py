@@ -4,6 +4,9 @@
     logsph-trace look DEPTH --intrinsics FX FY CX CY [--depth-scale S] [--labels FILE]
                       [--names FILE] --eyes X Y Z (--pitch-yaw P Y | --gaze DX DY DZ)
                       [--half-angle DEG] [--json] [--html FILE]
+    logsph-trace replay BAG --depth TOPIC --camera-info TOPIC --base-frame FRAME
+                        [--labels TOPIC] [--gaze-frames 'gaze_*'] [--half-angle DEG]
+                        --out EVENTS.jsonl
     logsph-trace warmup
     logsph-trace trace --grid 0.3,10,64,360,180 --origin 0 2 2 --direction -0.3 -0.01 0
                        [--cone 5] [--format table|json|csv]
@@ -410,6 +413,36 @@ def cmd_look(args):
     return 0
 
 
+def cmd_replay(args):
+    """``logsph-trace replay``: a ROS 2 bag's gazes, ranked, as JSON Lines."""
+    from ._files import atomic_write
+    from .ros import BagReplay
+
+    grid = None
+    if args.grid:
+        from .grid import Grid
+
+        rho, cells, spacing = _grid_spec(args.grid)
+        grid = Grid(*rho, *cells, spacing=spacing)
+    try:
+        replay = BagReplay(args.bag, args.depth, args.camera_info, args.base_frame,
+                           labels=args.labels, gaze_frames=args.gaze_frames,
+                           half_angle=math.radians(args.half_angle), grid=grid,
+                           progress=not args.quiet and sys.stderr.isatty())
+    except ImportError as error:
+        raise CliError(str(error)) from None
+    with atomic_write(args.out) as stream:
+        for event in replay:
+            stream.write((json.dumps(event.as_dict()) + "\n").encode("utf-8"))
+    summary = replay.summary
+    print(f"{args.bag}: {summary.line()}; events in {args.out}")
+    if summary.truncated:
+        print(f"logsph-trace: error: the bag ends early ({summary.truncated}); wrote the "
+              f"{summary.events} events before it", file=sys.stderr)
+        return 1
+    return 0
+
+
 def cmd_warmup(args):
     """``logsph-trace warmup``: compile and cache every CPU kernel now."""
     from ._jit import CACHE
@@ -500,6 +533,36 @@ def build_parser():
                       help="also write an interactive 3-D view (pip install "
                            "'logsph_trace[view]')")
     look.set_defaults(run=cmd_look)
+    replay = commands.add_parser(
+        "replay", help="who looked at what in a ROS 2 bag, as JSON Lines",
+        description="Replay a ROS 2 bag (MCAP or sqlite3; pip install 'logsph_trace[ros]'): "
+                    "the depth images build the robot's egocentric map, moved by the "
+                    "odometry on /tf, and at each gaze (a TF frame per person whose z axis is "
+                    "the gaze, as ROS4HRI publishes them) the objects are ranked. One JSON "
+                    "line per gaze and object: stamp, person, frame_id, object (0: none), "
+                    "probability, point (m, in the base frame), distance (m).")
+    replay.add_argument("bag", metavar="BAG", help="the rosbag2 folder")
+    replay.add_argument("--depth", required=True, metavar="TOPIC",
+                        help="sensor_msgs/Image depth: 16UC1 (mm) or 32FC1 (m)")
+    replay.add_argument("--camera-info", required=True, metavar="TOPIC",
+                        help="its sensor_msgs/CameraInfo")
+    replay.add_argument("--base-frame", required=True, metavar="FRAME",
+                        help="the robot's base frame (the map's and the events' frame)")
+    replay.add_argument("--labels", metavar="TOPIC",
+                        help="an instance-label image topic with the depth's stamps (0: no "
+                             "object); without it, objects are found in the map")
+    replay.add_argument("--gaze-frames", default="gaze_*", metavar="PATTERN",
+                        help="the gaze frames on /tf (default 'gaze_*'; the wildcard's part "
+                             "names the person)")
+    replay.add_argument("--half-angle", type=float, default=5.0, metavar="DEG",
+                        help="the gaze cone's half-angle, degrees (default 5)")
+    replay.add_argument("--grid", metavar="SPEC",
+                        help="RHO_MIN,RHO_MAX,N_RHO,N_THETA,N_PHI[,SPACING] in metres (default "
+                             "0.3,10,64,360,180)")
+    replay.add_argument("--out", required=True, metavar="EVENTS.jsonl")
+    replay.add_argument("--quiet", action="store_true",
+                        help="no progress bar (there is none unless stderr is a terminal)")
+    replay.set_defaults(run=cmd_replay)
     trace = commands.add_parser("trace", help="trace one ray, a gaze cone, or a batch file")
     trace.add_argument("--origin", nargs=3, type=float, metavar=("X", "Y", "Z"),
                        help="where the ray starts, in the grid's frame and length unit (the "
