@@ -59,22 +59,31 @@ def gaze_targets(occupancy, gaze, direction=None, threshold=0.6):
     GazeTargets
         ``cells`` (u, 3), ``values`` their probabilities, ``t_enter`` the distance
         at which the gaze first enters each, in order of distance.
+
+    Notes
+    -----
+    After :meth:`~logsph_trace.OccupancyGrid.move`, the gaze is traced
+    through the cells as the map holds them (exactly, without resampling
+    the map), and each cell is reported as the robot-frame cell that holds
+    its centre.
     """
     _check_occupancy(occupancy)
     origin, direction = gaze_pair(gaze, direction)
     threshold = validate.probability("threshold", threshold)
     origin = validate.point("origin", origin, validate.reach(occupancy.grid))
     direction = validate.vector("direction", direction)
-    ray = trace_many(occupancy.grid, origin, direction, parallel=False)[0]
-    if len(ray) == 0:
-        return GazeTargets(ray.cells, np.empty(0), np.empty(0))
-    _, first = np.unique(ray.cells, axis=0, return_index=True)
-    first = np.sort(first)  # each cell at its first entry, in order of distance
-    cells = ray.cells[first]
-    with occupancy._lock:
-        values = occupancy._values_at(cells)
+    with occupancy._lock:  # after a move: traced through the cells as the map holds them
+        ray = trace_many(occupancy.grid, *occupancy._into_held(origin, direction),
+                         parallel=False)[0]
+        if len(ray) == 0:
+            return GazeTargets(ray.cells, np.empty(0), np.empty(0))
+        _, first = np.unique(ray.cells, axis=0, return_index=True)
+        first = np.sort(first)  # each cell at its first entry, in order of distance
+        cells = ray.cells[first]
+        values = occupancy._held_values_at(cells)
+        cells = occupancy._robot_cells(cells)
     probability = 1.0 / (1.0 + np.exp(-values.astype(np.float64)))
-    above = probability > threshold
+    above = (probability > threshold) & (cells[:, 0] >= 0)
     return GazeTargets(cells[above], probability[above], ray.t_enter[first][above])
 
 
@@ -116,6 +125,11 @@ def fixation_probability(occupancy, gaze, direction=None, half_angle=0.0, n_rays
     dense : bool
         Return an array of shape ``grid.shape`` instead of sparse results.
 
+    After :meth:`~logsph_trace.OccupancyGrid.move`, the cone is traced
+    through the cells as the map holds them (exactly, without resampling
+    the map), and each cell's probability is reported in the robot-frame
+    cell that holds its centre (summed where two land in one).
+
     Returns
     -------
     GazeTargets or numpy.ndarray
@@ -125,6 +139,25 @@ def fixation_probability(occupancy, gaze, direction=None, half_angle=0.0, n_rays
     _check_occupancy(occupancy)
     origin, direction = gaze_pair(gaze, direction)
     grid = occupancy.grid
+    options = _fixation_options(unknown, free_below, min_distance)
+    origin = validate.point("origin", origin, validate.reach(grid))
+    with occupancy._lock:  # the map and its pose not changed by another thread meanwhile
+        cells, values, t_first = _fixation_held(occupancy, origin, direction, half_angle,
+                                                n_rays, pattern, weighting, sigma, options)
+        if occupancy._pose is not None:
+            cells, values, t_first = _merged(grid, occupancy._robot_cells(cells), values,
+                                             t_first)
+    if dense:
+        out = np.zeros(grid.shape)
+        out[tuple(cells.T)] = values
+        return out
+    keep = values > 0
+    order = np.argsort(-values[keep], kind="stable")
+    return GazeTargets(cells[keep][order], values[keep][order], t_first[keep][order])
+
+
+def _fixation_options(unknown=0.0, free_below=0.5, min_distance=0.0):
+    """Check ``fixation_probability``'s options; return (min_distance, unknown, free_below)."""
     unknown = validate.number("unknown", unknown, "a probability in [0, 1]")
     if not 0.0 <= unknown <= 1.0:
         raise ValueError(f"unknown must be a probability in [0, 1], got {unknown!r}")
@@ -134,26 +167,40 @@ def fixation_probability(occupancy, gaze, direction=None, half_angle=0.0, n_rays
     free_below = validate.number("free_below", free_below, "a probability in [0, 1]")
     if not 0.0 <= free_below <= 1.0:
         raise ValueError(f"free_below must be a probability in [0, 1], got {free_below!r}")
-    origin = validate.point("origin", origin, validate.reach(grid))
+    return min_distance, unknown, free_below
+
+
+def _fixation_held(occupancy, origin, direction, half_angle, n_rays, pattern, weighting, sigma,
+                   options):
+    """Return ``fixation_probability``'s sparse cells, values and first distances.
+
+    In the cells as the map holds them (the robot's frame until a move);
+    call under the map's lock. ``options``: (min_distance, unknown, free_below), checked.
+    """
+    grid = occupancy.grid
+    origin, direction = occupancy._into_held(origin, validate.vector("direction", direction))
     directions, ray_weights = sample_rays(grid, origin, direction, half_angle, n_rays, pattern,
                                           weighting, sigma)
     # Traced as trace_cone traces; each cell's first-occupied probability is
     # summed in the same chunked pass that sums a cone's weights.
-    with occupancy._lock:  # not changed by another thread meanwhile
-        fixation = (occupancy._flat(), min_distance, unknown, free_below)
-        if occupancy.device == "cuda":
-            cells, values, t_first = cones_on_gpu(grid, origin[None],
-                                                  [(directions, ray_weights)], fixation)[0]
-        else:
-            cells, values, t_first = aggregate_cone(grid, origin, directions, ray_weights,
-                                                    fixation)
-    if dense:
-        out = np.zeros(grid.shape)
-        out[tuple(cells.T)] = values
-        return out
-    keep = values > 0
-    order = np.argsort(-values[keep], kind="stable")
-    return GazeTargets(cells[keep][order], values[keep][order], t_first[keep][order])
+    fixation = (occupancy._held_flat(), *options)
+    if occupancy.device == "cuda":
+        return cones_on_gpu(grid, origin[None], [(directions, ray_weights)], fixation)[0]
+    return aggregate_cone(grid, origin, directions, ray_weights, fixation)
+
+
+def _merged(grid, cells, values, t_first):
+    """Sum ``values`` of equal ``cells`` (rows of -1 dropped).
+
+    Each keeps its least ``t_first``.
+    """
+    inside = cells[:, 0] >= 0
+    flat = np.ravel_multi_index(tuple(cells[inside].T), grid.shape)
+    unique, which = np.unique(flat, return_inverse=True)
+    first = np.full(unique.shape[0], np.inf)
+    np.minimum.at(first, which, t_first[inside])
+    merged = np.stack(np.unravel_index(unique, grid.shape), axis=1).astype(cells.dtype)
+    return merged, np.bincount(which, weights=values[inside], minlength=unique.shape[0]), first
 
 
 class ObjectHit(NamedTuple):
@@ -300,18 +347,26 @@ def gaze_objects(occupancy, gaze, direction=None, half_angle=DEFAULT_HALF_ANGLE,
         raise WrongTypeError(f"names must be a mapping from label to name, got "
                              f"{type(names).__name__}")
     origin, direction = gaze_pair(gaze, direction)
-    cells = fixation_probability(occupancy, origin, direction, half_angle=half_angle,
-                                 n_rays=n_rays, **fixation)
-    with occupancy._lock:
-        labels = occupancy._frame_labels()[tuple(cells.cells.T)].astype(np.int64)
+    cone = {name: fixation.pop(name) for name in ("pattern", "weighting", "sigma")
+            if name in fixation}
+    options = _fixation_options(**fixation)
+    origin = validate.point("origin", origin, validate.reach(occupancy.grid))
+    with occupancy._lock:  # the cone and the labels in the cells as the map holds them
+        cells, values, t_enter = _fixation_held(
+            occupancy, origin, direction, half_angle, n_rays, cone.get("pattern", "fibonacci"),
+            cone.get("weighting", "gaussian"), cone.get("sigma"), options)
+        reached = values > 0
+        cells, values, t_enter = cells[reached], values[reached], t_enter[reached]
+        labels = occupancy._held()[1][tuple(cells.T)].astype(np.int64)
         labelled = labels > 0
-        unlabelled = float(cells.values[~labelled].sum())
+        unlabelled = float(values[~labelled].sum())
         if not np.any(labelled):
             return GazeObjects((), unlabelled)
-        labels, values = labels[labelled], cells.values[labelled]
-        first_cells, t_enter = cells.cells[labelled], cells.t_enter[labelled]
+        labels, values = labels[labelled], values[labelled]
+        first_cells, t_enter = cells[labelled], t_enter[labelled]
         ids, which = np.unique(labels, return_inverse=True)
         centroids, counts = _centroids(occupancy, ids)
+        first_cells = occupancy._robot_cells(first_cells)
     sums = np.bincount(which, weights=values)
     # Each object's first-reached cell: the smallest distance among its cells.
     order = np.lexsort((t_enter, which))
@@ -322,16 +377,22 @@ def gaze_objects(occupancy, gaze, direction=None, half_angle=DEFAULT_HALF_ANGLE,
     for rank in np.argsort(-sums, kind="stable").tolist():
         label = int(ids[rank])
         distance = float(t_enter[first[rank]])
+        point = origin + distance * axis
+        cell = first_cells[first[rank]]
+        if cell[0] < 0:  # after a move, a held cell whose centre is outside the region
+            cell = np.atleast_2d(occupancy.grid.cell_of(point))[0]
         hits.append(ObjectHit(label, None if names is None else names.get(label),
-                              float(sums[rank]), distance, origin + distance * axis,
-                              tuple(first_cells[first[rank]].tolist()), centroids[rank],
-                              int(counts[rank])))
+                              float(sums[rank]), distance, point, tuple(cell.tolist()),
+                              centroids[rank], int(counts[rank])))
     return GazeObjects(tuple(hits), unlabelled)
 
 
 def _centroids(occupancy, ids):
-    """Mean cell centre and cell count of each label in ``ids`` (sorted), in one pass."""
-    flat = occupancy._frame_labels().reshape(-1)
+    """Mean cell centre (robot frame) and cell count of each label in ``ids`` (sorted).
+
+    In one pass over the labels as the map holds them.
+    """
+    flat = occupancy._held()[1].reshape(-1)
     where = np.flatnonzero(np.isin(flat, ids))
     which = np.searchsorted(ids, flat[where])
     cells = np.stack(np.unravel_index(where, occupancy.grid.shape), axis=1)
@@ -339,7 +400,7 @@ def _centroids(occupancy, ids):
     counts = np.bincount(which, minlength=ids.shape[0])
     sums = np.stack([np.bincount(which, weights=centres[:, axis], minlength=ids.shape[0])
                      for axis in range(3)], axis=1)
-    return sums / counts[:, None], counts
+    return occupancy._to_robot(sums / counts[:, None]), counts
 
 
 class GazeAccumulator:

@@ -9,17 +9,22 @@ covers the most of its column's centre ray within its shell, traced exactly
 through the old grid.
 """
 
+import functools
 import math
 import sys
 
 import numpy as np
 
 from . import _validate as validate
+from ._jit import interrupts_after
 from .kernels import resample as _resample
 from .sensor import pose_of
 from .trace import trace_many
 from .traces import TraceBuffers
 
+# ``move`` resamples the map once the robot is this far from the map's centre,
+# as a fraction of rho_min (see OccupancyGrid.move).
+RECENTRE_DISTANCE = 0.5
 # Centre rays traced at a time: their segments (about 100 a ray on a
 # 64 x 360 x 180 grid, 28 bytes each) stay under 30 MB, reused chunk to chunk.
 COLUMNS_PER_CHUNK = 8192
@@ -207,3 +212,185 @@ def whole_cell_turn(grid, rotation):
     if np.max(np.abs(rotation - expected)) > 1e-12:
         return None
     return turn % grid.n_theta
+
+
+def one_at_a_time(method):
+    """Run ``method`` under its map's lock, so that threads sharing a map take turns."""
+
+    @functools.wraps(method)
+    def locked(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+
+    return locked
+
+
+class FollowsTheRobot:
+    """What lets :class:`~logsph_trace.OccupancyGrid` follow a moving robot.
+
+    The map keeps its cells where they are (``_log_odds``, ``_labels``) and
+    the robot's pose within them (``_pose``, None until a move); answers read
+    those cells through the pose, and arrays are resampled into the robot's
+    frame (``_view``) only when read. Its methods are ``OccupancyGrid``'s;
+    they live here, beside the resampling they use.
+    """
+
+    def _frame(self, write=False):
+        """Return (log_odds, labels) on the host, in the robot's frame.
+
+        Held as they are when the robot has not moved since the map was last
+        centred on it; otherwise resampled (:func:`~logsph_trace.motion.resample`)
+        and kept until the map or the pose changes. Neither is to be written;
+        ``write``: check that the held log-odds are writeable all the same
+        (a kernel is compiled for writeable arrays only).
+        """
+        log_odds = self._checked(write)
+        if self._pose is None:
+            return log_odds, self._labels
+        if self._view is None:
+            if self._directions is None:
+                self._directions = column_directions(self.grid)
+            spare, self._spare = self._spare, None
+            self._view = resample(self.grid, log_odds, self._labels, *self._pose,
+                                  self._directions, spare)
+        return self._view
+
+    def _let_go(self, arrays):
+        """Keep ``arrays`` (log_odds, labels), no longer used, for the next resampling.
+
+        Only if nothing else holds them (``motion.unshared``).
+        """
+        if arrays is not None and unshared(arrays[0]) and unshared(arrays[1]):
+            self._spare = arrays
+
+    def _drop_view(self):
+        """Forget the resampled arrays: the map or the pose changed."""
+        view, self._view = self._view, None
+        self._let_go(view)
+
+    def _into_held(self, origin, direction):
+        """Return a gaze (origin, direction) in the robot's frame as the map holds its cells."""
+        if self._pose is None:
+            return origin, direction
+        rotation, translation = self._pose
+        return rotation @ origin + translation, rotation @ direction
+
+    def _to_robot(self, points):
+        """Return points (n, 3) given as the map holds its cells, in the robot's frame."""
+        if self._pose is None:
+            return points
+        rotation, translation = self._pose
+        return (np.asarray(points) - translation) @ rotation
+
+    def _robot_cells(self, cells):
+        """Return the robot-frame cells that hold the centres of ``cells`` (held).
+
+        Rows of -1 where a centre lies outside the region.
+        """
+        if self._pose is None or not len(cells):
+            return cells
+        return np.atleast_2d(self.grid.cell_of(self._to_robot(self.grid.cell_centers(cells))))
+
+    def _held_flat(self):
+        """Return the log-odds as the map holds them, flat, where they live."""
+        log_odds = self._log_odds if self._cuda is not None else self._checked()
+        return log_odds.reshape(log_odds.size)
+
+    def _held_values_at(self, cells):
+        """Return the held log-odds of ``cells`` ((u, 3) held indices) on the host."""
+        if self._cuda is None:
+            return self._checked(write=False)[tuple(np.asarray(cells).T)]
+        flat = np.ravel_multi_index(tuple(np.asarray(cells).T), self.grid.shape)
+        return self._cuda.values_at(self._held_flat(), flat.astype(np.int64))
+
+    def _held(self):
+        """Return (log_odds, labels) on the host as the map holds them (see :meth:`move`)."""
+        if self._cuda is None:
+            return self._checked(write=False), self._labels
+        return self._log_odds.copy_to_host(), self._labels
+
+    def _hold_labels(self, labels):
+        """Replace the labels as the map holds them (int32, ``grid.shape``, checked)."""
+        self._labels = labels
+        self._drop_view()
+
+    def _frame_labels(self):
+        """Return the labels in the robot's frame, on the host (not to be written)."""
+        return self._labels if self._pose is None else self._frame()[1]
+
+    @interrupts_after
+    @one_at_a_time
+    def move(self, motion):
+        """Tell the map the robot moved: later inputs, answers and arrays are in its new frame.
+
+        Parameters
+        ----------
+        motion : array_like (4, 4), or (R, t)
+            The robot's new pose in its old frame, as odometry gives it
+            (ROS's ``T_old_new``): a point ``p`` in the old frame is
+            ``R^T (p - t)`` in the new one. ``R`` must be a rotation
+            (orthonormal within 1e-6, determinant +1).
+
+        Returns
+        -------
+        self
+
+        Raises
+        ------
+        ValueError
+            ``motion`` is not a rigid motion (scaled, reflected, not
+            finite, wrong shape); the map is left as it was.
+        NotImplementedError
+            On a GPU map (``device="cuda"``): move a host copy
+            (:meth:`to_host`) instead.
+
+        Notes
+        -----
+        The map keeps its cells where they are and the robot's pose within
+        them: a scan or a gaze is taken into the map's cells through that
+        pose, exactly, so moving costs nothing by itself. The map is
+        resampled onto cells centred on the robot (:meth:`recentre`) when
+        the robot has walked ``RECENTRE_DISTANCE`` (half) of ``rho_min``
+        from the map's centre, or when ``log_odds`` or ``labels`` are read.
+        Gazes (:func:`~logsph_trace.gaze_objects` and the others) are
+        traced through the held cells, exactly; :meth:`occupied` and
+        :attr:`probability` read a resampled copy, kept until the map or the
+        pose changes. Each resampling blurs a little; this way a map
+        is resampled about once per ``rho_min / 2`` walked, not once per
+        frame (``python -m bench.egomotion`` measures both).
+        ``docs/how-to/moving-robot.md`` shows the loop.
+        """
+        if self._cuda is not None:
+            raise NotImplementedError("move is not implemented for a GPU map; move a host copy "
+                                      "(to_host()) instead")
+        motion = rigid_motion(motion)
+        pose = motion if self._pose is None else compose(self._pose, motion)
+        if np.array_equal(pose[0], np.eye(3)) and not np.any(pose[1]):
+            pose = None
+        self._pose = pose
+        self._drop_view()
+        if pose is not None and (math.hypot(*pose[1].tolist())
+                                 >= RECENTRE_DISTANCE * self.grid.rho_min):
+            self.recentre()
+        return self
+
+    @interrupts_after
+    @one_at_a_time
+    def recentre(self):
+        """Resample the map onto cells centred on the robot now; return self.
+
+        :meth:`move` does it when the robot has walked far from the map's
+        centre, and reading ``log_odds`` or ``labels`` does it; otherwise
+        there is no need. Each new cell takes the value and label of the
+        old cell that covers the most of its column's centre ray within
+        its shell, traced exactly through the old cells
+        (:func:`~logsph_trace.motion.resample`); cells from outside the old
+        region are unknown.
+        """
+        if self._pose is not None:
+            self._frame()
+            held = self._log_odds, self._labels
+            (self._log_odds, self._labels), self._view = self._view, None
+            self._pose = None
+            self._let_go(held)
+        return self

@@ -84,7 +84,7 @@ def _components(occupied, exclude, detected, theta_full, min_cells):
     if detected is not None:
         occupied &= detected == 0
     labels = np.zeros(occupied.shape, dtype=np.int32)
-    count = int(_kernels.components(occupied, theta_full, labels))
+    count = int(_kernels.components(occupied, theta_full, np.flatnonzero(occupied), labels))
     if min_cells > 1 and count:
         kept = np.bincount(labels.ravel(), minlength=count + 1) >= min_cells
         kept[0] = False

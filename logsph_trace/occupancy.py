@@ -8,7 +8,6 @@ change. What a gaze lands on in it is :mod:`logsph_trace.gaze`'s.
 """
 
 import contextlib
-import functools
 import math
 import threading
 import time
@@ -28,7 +27,7 @@ from .kernels import coherent as _coherent
 from .kernels import radial as _radial
 from .kernels import update as _update
 from .kernels.geometry import AT_CENTRE
-from .motion import column_directions, compose, resample, rigid_motion, unshared
+from .motion import FollowsTheRobot, compose, one_at_a_time, rigid_motion
 from .sensor import depth_to_points, pose_of
 from .trace import cuda_backend
 
@@ -111,10 +110,6 @@ def _coarsening(per_side, n_rays, extent):
     per_bin = n_rays / max(area * (0.5 * per_side) ** 2, 1.0)
     return min(max(round(math.sqrt(RAYS_PER_SAMPLE / per_bin)), 1), BINS_PER_CELL)
 
-
-# ``move`` resamples the map once the robot is this far from the map's centre,
-# as a fraction of rho_min (see OccupancyGrid.move).
-RECENTRE_DISTANCE = 0.5
 
 # A scan's flags (a byte per cell, shared by the threads) are kept zero for
 # this Python thread's next scan up to this size; a larger set is freed
@@ -228,17 +223,6 @@ def _warn_nothing_inside(grid, points):
         f"frame (pose)?", validate.DepthUnitWarning)
 
 
-def _one_at_a_time(method):
-    """Run ``method`` under its map's lock, so that threads sharing a map take turns."""
-
-    @functools.wraps(method)
-    def locked(self, *args, **kwargs):
-        with self._lock:
-            return method(self, *args, **kwargs)
-
-    return locked
-
-
 class _Probability:
     """An attribute that holds a probability in (low, high), checked on every assignment.
 
@@ -259,7 +243,7 @@ class _Probability:
         obj.__dict__[self.name] = validate.probability(self.name, value, self.low, self.high)
 
 
-class OccupancyGrid:
+class OccupancyGrid(FollowsTheRobot):
     """Log-odds occupancy over a grid, updated OctoMap-style.
 
     Parameters
@@ -390,135 +374,6 @@ class OccupancyGrid:
         """Return the log-odds in the robot's frame as a numpy array (a copy from a GPU map)."""
         return self._frame()[0] if self._cuda is None else self._log_odds.copy_to_host()
 
-    def _flat(self):
-        """Return the log-odds in the robot's frame, flat, where they live."""
-        log_odds = self._log_odds if self._cuda is not None else self._frame(write=True)[0]
-        return log_odds.reshape(log_odds.size)
-
-    def _frame(self, write=False):
-        """Return (log_odds, labels) on the host, in the robot's frame.
-
-        Held as they are when the robot has not moved since the map was last
-        centred on it; otherwise resampled (:func:`~logsph_trace.motion.resample`)
-        and kept until the map or the pose changes. Neither is to be written;
-        ``write``: check that the held log-odds are writeable all the same
-        (a kernel is compiled for writeable arrays only).
-        """
-        log_odds = self._checked(write)
-        if self._pose is None:
-            return log_odds, self._labels
-        if self._view is None:
-            if self._directions is None:
-                self._directions = column_directions(self.grid)
-            spare, self._spare = self._spare, None
-            self._view = resample(self.grid, log_odds, self._labels, *self._pose,
-                                  self._directions, spare)
-        return self._view
-
-    def _let_go(self, arrays):
-        """Keep ``arrays`` (log_odds, labels), no longer used, for the next resampling.
-
-        Only if nothing else holds them (``motion.unshared``).
-        """
-        if arrays is not None and unshared(arrays[0]) and unshared(arrays[1]):
-            self._spare = arrays
-
-    def _drop_view(self):
-        """Forget the resampled arrays: the map or the pose changed."""
-        view, self._view = self._view, None
-        self._let_go(view)
-
-    def _held(self):
-        """Return (log_odds, labels) on the host as the map holds them (see :meth:`move`)."""
-        if self._cuda is None:
-            return self._checked(write=False), self._labels
-        return self._log_odds.copy_to_host(), self._labels
-
-    def _hold_labels(self, labels):
-        """Replace the labels as the map holds them (int32, ``grid.shape``, checked)."""
-        self._labels = labels
-        self._drop_view()
-
-    def _frame_labels(self):
-        """Return the labels in the robot's frame, on the host (not to be written)."""
-        return self._labels if self._pose is None else self._frame()[1]
-
-    @interrupts_after
-    @_one_at_a_time
-    def move(self, motion):
-        """Tell the map the robot moved: later inputs, answers and arrays are in its new frame.
-
-        Parameters
-        ----------
-        motion : array_like (4, 4), or (R, t)
-            The robot's new pose in its old frame, as odometry gives it
-            (ROS's ``T_old_new``): a point ``p`` in the old frame is
-            ``R^T (p - t)`` in the new one. ``R`` must be a rotation
-            (orthonormal within 1e-6, determinant +1).
-
-        Returns
-        -------
-        self
-
-        Raises
-        ------
-        ValueError
-            ``motion`` is not a rigid motion (scaled, reflected, not
-            finite, wrong shape); the map is left as it was.
-        NotImplementedError
-            On a GPU map (``device="cuda"``): move a host copy
-            (:meth:`to_host`) instead.
-
-        Notes
-        -----
-        The map keeps its cells where they are and the robot's pose within
-        them: a scan or a gaze is taken into the map's cells through that
-        pose, exactly, so moving costs nothing by itself. The map is
-        resampled onto cells centred on the robot (:meth:`recentre`) when
-        the robot has walked ``RECENTRE_DISTANCE`` (half) of ``rho_min``
-        from the map's centre, or when ``log_odds`` or ``labels`` are read.
-        Answers (:func:`~logsph_trace.gaze_objects`, :meth:`occupied`,
-        :attr:`probability`) read a resampled copy, kept until the map or
-        the pose changes. Each resampling blurs a little; this way a map
-        is resampled about once per ``rho_min / 2`` walked, not once per
-        frame (``python -m bench.egomotion`` measures both).
-        ``docs/how-to/moving-robot.md`` shows the loop.
-        """
-        if self._cuda is not None:
-            raise NotImplementedError("move is not implemented for a GPU map; move a host copy "
-                                      "(to_host()) instead")
-        motion = rigid_motion(motion)
-        pose = motion if self._pose is None else compose(self._pose, motion)
-        if np.array_equal(pose[0], np.eye(3)) and not np.any(pose[1]):
-            pose = None
-        self._pose = pose
-        self._drop_view()
-        if pose is not None and (math.hypot(*pose[1].tolist())
-                                 >= RECENTRE_DISTANCE * self.grid.rho_min):
-            self.recentre()
-        return self
-
-    @interrupts_after
-    @_one_at_a_time
-    def recentre(self):
-        """Resample the map onto cells centred on the robot now; return self.
-
-        :meth:`move` does it when the robot has walked far from the map's
-        centre, and reading ``log_odds`` or ``labels`` does it; otherwise
-        there is no need. Each new cell takes the value and label of the
-        old cell that covers the most of its column's centre ray within
-        its shell, traced exactly through the old cells
-        (:func:`~logsph_trace.motion.resample`); cells from outside the old
-        region are unknown.
-        """
-        if self._pose is not None:
-            self._frame()
-            held = self._log_odds, self._labels
-            (self._log_odds, self._labels), self._view = self._view, None
-            self._pose = None
-            self._let_go(held)
-        return self
-
     def _checked(self, write=True):
         """Return the host map, after checking it is still what the kernels index.
 
@@ -554,7 +409,7 @@ class OccupancyGrid:
         return np.argwhere(self._host_log_odds() > _logit(threshold)).astype(np.int32)
 
     @interrupts_after
-    @_one_at_a_time
+    @one_at_a_time
     def integrate(self, points, sensor_origin, max_range=None, invalid="raise", labels=None):
         """Integrate one scan: free space along each sensor ray, its end cell occupied.
 
@@ -718,16 +573,6 @@ class OccupancyGrid:
         winners = order[first]
         self._labels.reshape(-1)[cells[winners]] = votes[winners]
 
-    def _values_at(self, cells):
-        """Return the log-odds of ``cells`` ((u, 3) indices in the grid) on the host.
-
-        From a GPU map only these cells are copied.
-        """
-        if self._cuda is None:
-            return self._frame()[0][tuple(np.asarray(cells).T)]
-        flat = np.ravel_multi_index(tuple(np.asarray(cells).T), self.grid.shape)
-        return self._cuda.values_at(self._flat(), flat.astype(np.int64))
-
     @property
     def last_scan(self):
         """What the last :meth:`integrate` or :meth:`integrate_depth` put in (:class:`ScanStats`).
@@ -737,7 +582,7 @@ class OccupancyGrid:
         return self._last_scan
 
     @interrupts_after
-    @_one_at_a_time
+    @one_at_a_time
     def integrate_depth(self, depth, intrinsics, pose=None, max_range=None, depth_scale=1.0,
                         labels=None):
         """Integrate one depth image from a camera at ``pose``.
@@ -783,7 +628,7 @@ class OccupancyGrid:
         self._last_scan = ScanStats(self._last_scan.rays, self._last_scan.invalid + scan.invalid)
         return self
 
-    @_one_at_a_time
+    @one_at_a_time
     def decay(self, factor):
         """Fade the map towards unknown: ``log_odds *= factor`` (a short-term memory).
 
@@ -797,10 +642,10 @@ class OccupancyGrid:
             np.multiply(log_odds, np.float32(factor), out=log_odds)
             self._drop_view()
         else:
-            self._cuda.decay(self._flat(), np.float32(factor))
+            self._cuda.decay(self._held_flat(), np.float32(factor))
         return self
 
-    @_one_at_a_time
+    @one_at_a_time
     def save(self, path):
         """Write the map and its grid to a ``.npz`` file; return the path written.
 

@@ -327,10 +327,7 @@ def _mcap_records(stream):
             size = int.from_bytes(content[at:at + 8], "little")
             data = content[at + 8:at + 8 + size]
             if compression == "zstd":
-                import zstandard
-
-                data = zstandard.ZstdDecompressor().decompress(
-                    data, max_output_size=int.from_bytes(content[16:24], "little"))
+                data = _zstd().decompress(data)
             elif compression == "lz4":
                 import lz4.frame
 
@@ -342,6 +339,15 @@ def _mcap_records(stream):
             return  # the footer
         else:
             yield head[0], content
+
+
+def _zstd():
+    """Return the zstd module rosbags reads with (the standard library's from Python 3.14)."""
+    try:
+        from compression import zstd
+    except ImportError:
+        from backports import zstd
+    return zstd
 
 
 def _seconds(stamp):

@@ -8,7 +8,10 @@ import pytest
 pytest.importorskip("rosbags")
 pytest.importorskip("scipy")
 
-from bags import (  # noqa: E402 -- after the skips
+import logsph_trace as lt  # noqa: E402
+from logsph_trace import cli  # noqa: E402
+from logsph_trace.ros import BagReplay, TransformTree  # noqa: E402
+from logsph_trace.ros_scene import (  # noqa: E402 -- after the skips
     MSG,
     PEOPLE,
     SCENE_FROM_ODOM,
@@ -23,10 +26,6 @@ from bags import (  # noqa: E402 -- after the skips
     transform,
     walking_robot,
 )
-
-import logsph_trace as lt  # noqa: E402
-from logsph_trace import cli  # noqa: E402
-from logsph_trace.ros import BagReplay, TransformTree  # noqa: E402
 
 GRID = lt.Grid(0.3, 8.0, 32, 180, 90)
 # Where a gaze first reaches an object's cells lies within about a cell of the

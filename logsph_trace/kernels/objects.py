@@ -6,20 +6,24 @@ from .._jit import jit
 
 
 @jit(runtime=True)
-def components(occupied, wrap_theta, labels):
+def components(occupied, wrap_theta, cells, labels):
     """Label the 26-connected components of ``occupied`` (n_rho, n_theta, n_phi) bool.
 
     Cells are neighbours when each index differs by at most 1; with
     ``wrap_theta`` the first and last theta columns are neighbours too (a
-    full circle has no seam). ``labels`` (same shape, int32, zero) gets
-    1, 2, ... per component, numbered in order of each component's first
-    cell in C order; returns how many there are. A flood fill with an
-    explicit stack: every occupied cell is pushed once.
+    full circle has no seam). ``cells``: the flat indices of the occupied
+    cells, in C order (``numpy.flatnonzero(occupied)``): a map holds a few
+    thousand among millions, and looking only at them took the Motorcycle
+    frame's 64 x 360 x 180 map from 31 ms to under 1 (``python -m
+    bench.replay``). ``labels`` (same shape, int32, zero) gets 1, 2, ... per
+    component, numbered in order of each component's first cell in C order;
+    returns how many there are. A flood fill with an explicit stack: every
+    occupied cell is pushed once.
     """
     n_rho, n_theta, n_phi = occupied.shape
-    stack = np.empty(occupied.size, dtype=np.int64)
+    stack = np.empty(cells.shape[0], dtype=np.int64)
     count = 0
-    for start in range(occupied.size):
+    for start in cells:
         i0 = start // (n_theta * n_phi)
         j0 = (start // n_phi) % n_theta
         k0 = start % n_phi

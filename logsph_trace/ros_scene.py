@@ -1,5 +1,10 @@
-"""ROS 2 bags for the replay tests, written by rosbags' own writer (MCAP or sqlite3).
+"""Synthetic ROS 2 recordings of the room scene, written by rosbags' own writer.
 
+For trying :class:`~logsph_trace.ros.BagReplay` and ``logsph-trace replay``
+without a robot, and for testing and timing them (``pip install
+"logsph_trace[ros]"``). :func:`walking_robot` records a robot that turns and
+walks past :func:`~logsph_trace.scene.room_scene` while two people look at
+its boxes; :meth:`Recording.write` writes a rosbag2 folder (MCAP or sqlite3).
 Frames follow ROS: ``odom`` is the world (x forward at the start, z up), the
 robot's ``base_link`` moves in it, the depth camera's optical frame
 ``camera`` (x right, y down, z forward) is mounted on the base by a static
@@ -13,7 +18,7 @@ import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from logsph_trace.scene import room_scene
+from .scene import room_scene
 
 TYPES = get_typestore(Stores.ROS2_HUMBLE)
 MSG = TYPES.types
@@ -43,7 +48,7 @@ def quaternion(rotation):
 
 
 def transform(seconds, parent, child, matrix):
-    """A ``geometry_msgs/TransformStamped`` of a 4 x 4 ``matrix`` (child to parent)."""
+    """Return a ``geometry_msgs/TransformStamped`` of a 4 x 4 ``matrix`` (child to parent)."""
     x, y, z, w = quaternion(matrix[:3, :3])
     t = matrix[:3, 3]
     return MSG["geometry_msgs/msg/TransformStamped"](
@@ -54,7 +59,7 @@ def transform(seconds, parent, child, matrix):
 
 
 def image(seconds, frame, pixels, encoding):
-    """A ``sensor_msgs/Image`` of ``pixels`` (rows, columns) in ``encoding``."""
+    """Return a ``sensor_msgs/Image`` of ``pixels`` (rows, columns) in ``encoding``."""
     data = np.ascontiguousarray(pixels)
     return MSG["sensor_msgs/msg/Image"](
         header=_header(seconds, frame), height=data.shape[0], width=data.shape[1],
@@ -63,7 +68,7 @@ def image(seconds, frame, pixels, encoding):
 
 
 def camera_info(seconds, frame, shape, intrinsics):
-    """A ``sensor_msgs/CameraInfo`` with camera matrix ``intrinsics`` (3 x 3)."""
+    """Return a ``sensor_msgs/CameraInfo`` with camera matrix ``intrinsics`` (3 x 3)."""
     k = np.asarray(intrinsics, dtype=np.float64)
     p = np.zeros((3, 4))
     p[:, :3] = k
@@ -90,6 +95,7 @@ class Recording:
     messages: list = field(default_factory=list)
 
     def add(self, seconds, topic, message):
+        """Record ``message`` on ``topic`` at ``seconds`` (its log time)."""
         self.messages.append((seconds, topic, message))
 
     def write(self, path, storage="mcap"):
@@ -106,7 +112,7 @@ class Recording:
 
 
 def base_pose(step, steps, turn=np.radians(60.0), walk=(0.0, 0.3, 0.0)):
-    """The robot's pose in ``odom`` at ``step``: turned by ``turn`` about z (left), walked."""
+    """Return the robot's pose in ``odom`` at ``step``: turned by ``turn`` about z, walked."""
     angle = turn * step / steps
     pose = np.eye(4)
     pose[:3, :3] = [[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0],
@@ -116,7 +122,7 @@ def base_pose(step, steps, turn=np.radians(60.0), walk=(0.0, 0.3, 0.0)):
 
 
 def camera_pose():
-    """The optical frame in the base frame (static)."""
+    """Return the optical frame's pose in the base frame (static)."""
     pose = np.eye(4)
     pose[:3, :3] = BASE_FROM_OPTICAL
     pose[:3, 3] = MOUNT
@@ -136,7 +142,7 @@ def render(scene, odom_from_optical, shape, intrinsics):
 
 
 def look_at(eyes, target):
-    """A 4 x 4 gaze frame at ``eyes`` whose z axis points at ``target`` (odom)."""
+    """Return a 4 x 4 gaze frame at ``eyes`` whose z axis points at ``target`` (odom)."""
     z = (target - eyes) / np.linalg.norm(target - eyes)
     x = np.cross([0.0, 0.0, 1.0], z)
     x /= np.linalg.norm(x)
@@ -152,14 +158,23 @@ PEOPLE = {"alice": (np.array([1.1, -1.0, 0.15]), "object"),
 
 
 def box_centre(scene, name):
-    """The centre of box ``name`` in odom."""
+    """Return the centre of box ``name`` in odom."""
     index = scene.index(name)
     return SCENE_FROM_ODOM.T @ (0.5 * (scene.low[index] + scene.high[index]))
 
 
 def walking_robot(steps=8, shape=(120, 160), encoding="16UC1", labels=True, rate=10.0,
                   gazes_per_frame=1):
-    """A robot turning and walking past the room scene: a Recording and its scene."""
+    """Record a robot that turns and walks past the room scene; return (Recording, scene).
+
+    ``steps`` + 1 depth frames of ``shape`` pixels at ``rate`` Hz (``16UC1``
+    millimetres or ``32FC1`` metres), their camera info, an instance-label
+    image per frame when ``labels``, the odometry on ``/tf``, the camera's
+    mounting on ``/tf_static``, and ``gazes_per_frame`` samples per frame of
+    each person in :data:`PEOPLE` (``gaze_alice`` looks at the object on
+    the table, ``gaze_bob`` at the shelf). The robot turns 60 degrees left
+    and walks 0.3 m to its left (:func:`base_pose`).
+    """
     scene = room_scene()
     intrinsics = np.array([[140.0, 0.0, shape[1] / 2 - 0.5], [0.0, 140.0, shape[0] / 2 - 0.5],
                            [0.0, 0.0, 1.0]])
@@ -198,7 +213,7 @@ def as_recorded(bag):
     header, the schemas, the channels, then every message as a record of
     its own, then the footer.
     """
-    from logsph_trace.ros import McapScan, _mcap_records
+    from .ros import McapScan, _mcap_records
 
     path = next(bag.glob("*.mcap"))
     with path.open("rb") as stream:

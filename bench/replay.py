@@ -1,0 +1,147 @@
+"""Replaying a ROS 2 bag: frames per second, against the same frames without the bag.
+
+    python -m bench.replay [--frames 300] [--repeats 1]
+
+Writes a bag (MCAP) of a robot turning and walking past the room scene
+(``logsph_trace.ros_scene.walking_robot``): ``--frames`` 640 x 480 depth
+frames (16UC1) at 30 Hz with their label images, camera info, odometry and
+two people's gaze frames (one sample each per frame). Then times, on all
+threads, into a 64 x 360 x 180 map:
+
+- ``BagReplay`` with the label topic;
+- ``BagReplay`` without it (``label_objects`` before each frame's gazes);
+- the baseline: the same frames, already decoded, integrated with the same
+  moves and camera poses, and the same gazes ranked, without reading the bag.
+
+Also the time of ``label_objects`` on the Motorcycle frame's map, when
+scikit-image is installed. Writes bench/results/replay.json and replay.md.
+"""
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+
+import logsph_trace as lt
+from bench.workload import write_results
+from logsph_trace.ros import MAP_FROM_BASE, BagReplay
+from logsph_trace.ros_scene import (
+    PEOPLE,
+    base_pose,
+    box_centre,
+    camera_pose,
+    look_at,
+    walking_robot,
+)
+
+GRID = (0.3, 10.0, 64, 360, 180)
+TOPICS = ("/camera/depth", "/camera/camera_info", "base_link")
+
+
+def baseline(frames, intrinsics, scene, steps):
+    """The replay's work on frames already decoded: move, integrate, rank; seconds."""
+    occupancy = lt.OccupancyGrid(lt.Grid(*GRID))
+    mount = MAP_FROM_BASE @ camera_pose()
+    start = time.perf_counter()
+    before = None
+    for step, (depth, labels) in enumerate(frames):
+        pose = base_pose(step, steps)
+        if before is not None:
+            occupancy.move(MAP_FROM_BASE @ np.linalg.inv(before) @ pose @ MAP_FROM_BASE.T)
+        before = pose
+        occupancy.integrate_depth(depth, intrinsics, pose=mount, depth_scale=0.001,
+                                  labels=labels)
+        for eyes, box in PEOPLE.values():
+            gaze = MAP_FROM_BASE @ np.linalg.inv(pose) @ look_at(eyes, box_centre(scene, box))
+            lt.gaze_objects(occupancy, gaze[:3, 3], gaze[:3, 2])
+    return time.perf_counter() - start
+
+
+def decoded_frames(recording):
+    """The recording's depth and label images as arrays, in order."""
+    depth = [m.data.view(np.uint16).reshape(m.height, m.width)
+             for _, topic, m in recording.messages if topic == "/camera/depth"]
+    labels = [m.data.view(np.uint16).reshape(m.height, m.width)
+              for _, topic, m in recording.messages if topic == "/camera/labels"]
+    return list(zip(depth, labels))
+
+
+def time_replay(bag, labels):
+    """Seconds of one replay, and its summary."""
+    replay = BagReplay(bag, *TOPICS, labels=labels, grid=lt.Grid(*GRID))
+    start = time.perf_counter()
+    for _ in replay:
+        pass
+    return time.perf_counter() - start, replay.summary
+
+
+def label_objects_ms(repeats=20):
+    """Best and median ms of label_objects on the Motorcycle frame's 64 x 360 x 180 map."""
+    try:
+        from logsph_trace import datasets
+
+        frame = datasets.motorcycle()
+    except ImportError:
+        return None
+    occupancy = lt.OccupancyGrid(lt.Grid(0.3, 8.0, 64, 360, 180))
+    occupancy.integrate_depth(frame.depth, frame.intrinsics)
+    times = []
+    for _ in range(repeats + 1):
+        start = time.perf_counter()
+        lt.label_objects(occupancy, replace=True)
+        times.append(time.perf_counter() - start)
+    return min(times[1:]) * 1e3, float(np.median(times[1:])) * 1e3
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=300)
+    args = parser.parse_args(argv)
+    steps = args.frames - 1
+    recording, scene = walking_robot(steps=steps, shape=(480, 640), rate=30.0)
+    intrinsics = next(m for _, t, m in recording.messages if t == "/camera/camera_info").k
+    frames = decoded_frames(recording)
+    with tempfile.TemporaryDirectory() as folder:
+        bag = recording.write(Path(folder) / "walk")
+        del recording
+        size = sum(f.stat().st_size for f in bag.iterdir()) / 2**20
+        small = walking_robot(steps=2, shape=(480, 640), rate=30.0)[0].write(
+            Path(folder) / "warm")
+        for labels in ("/camera/labels", None):  # compiles what the timed runs use
+            time_replay(small, labels)
+        baseline(frames[:3], intrinsics.reshape(3, 3), scene, steps)
+        rows = {}
+        for name, labels in (("with the label topic", "/camera/labels"),
+                             ("without it (label_objects)", None)):
+            seconds, summary = time_replay(bag, labels)
+            rows[name] = {"seconds": seconds, "fps": summary.frames / seconds,
+                          "frames": summary.frames, "gazes": summary.gazes,
+                          "summary": summary.line()}
+        seconds = baseline(frames, intrinsics.reshape(3, 3), scene, steps)
+        rows["the same frames without the bag (decoded, same moves and gazes)"] = {
+            "seconds": seconds, "fps": len(frames) / seconds, "frames": len(frames),
+            "gazes": 2 * len(frames), "summary": ""}
+    labelling = label_objects_ms()
+    lines = [f"{lt.Grid(*GRID)}, {numba.get_num_threads()} threads; a bag of {args.frames} "
+             f"640 x 480 depth frames (16UC1) at 30 Hz with label images, odometry and two "
+             f"people's gazes ({size:.0f} MB, MCAP)", "",
+             "| replay | seconds | frames a second | frames | gazes |",
+             "|---|---:|---:|---:|---:|"]
+    for name, r in rows.items():
+        lines.append(f"| {name} | {r['seconds']:.2f} | {r['fps']:.1f} | {r['frames']} "
+                     f"| {r['gazes']} |")
+    if labelling is not None:
+        lines += ["", f"`label_objects` on the Motorcycle frame's 64 x 360 x 180 map: best "
+                      f"{labelling[0]:.1f} ms, median {labelling[1]:.1f} ms (20 runs)"]
+    write_results("replay", argv, "\n".join(lines),
+                  {"threads": numba.get_num_threads(), "frames": args.frames,
+                   "bag_mb": size, "rows": rows,
+                   "label_objects_ms": None if labelling is None else
+                   {"best": labelling[0], "median": labelling[1]}})
+
+
+if __name__ == "__main__":
+    main()
