@@ -589,13 +589,24 @@ class BagReplay:
             self.occupancy.move(MAP_FROM_BASE @ np.linalg.inv(before) @ now @ MAP_FROM_BASE.T)
         self._stamp = stamp
 
-    def _frame(self, stamp, depth, labels, infos):
-        pixels, camera, scale = depth
+    def _arrive(self, stamp, frame, what):
+        """Move the map to ``stamp``; return ``frame``'s pose in the map's frame then.
+
+        Or, where a transform is missing or stale, count ``what`` as skipped
+        and return None, the map left where it was.
+        """
         try:
-            pose = MAP_FROM_BASE @ self.tree.lookup(self.base_frame, camera, stamp)
+            pose = MAP_FROM_BASE @ self.tree.lookup(self.base_frame, frame, stamp)
             self._move_to(stamp)
         except MissingTransform:
-            self.summary.skipped["depth frames without a transform"] += 1
+            self.summary.skipped[f"{what} without a transform"] += 1
+            return None
+        return pose
+
+    def _frame(self, stamp, depth, labels, infos):
+        pixels, camera, scale = depth
+        pose = self._arrive(stamp, camera, "depth frames")
+        if pose is None:
             return
         at = max(np.searchsorted([info[0] for info in infos], stamp, side="right") - 1, 0)
         self.occupancy.integrate_depth(pixels, infos[at][1], pose=pose, depth_scale=scale,
@@ -607,11 +618,8 @@ class BagReplay:
     def _gaze(self, stamp, frame):
         from .gaze import gaze_objects
 
-        try:
-            gaze = MAP_FROM_BASE @ self.tree.lookup(self.base_frame, frame, stamp)
-            self._move_to(stamp)
-        except MissingTransform:
-            self.summary.skipped["gazes without a transform"] += 1
+        gaze = self._arrive(stamp, frame, "gazes")
+        if gaze is None:
             return
         if not self._labelled:
             label_objects(self.occupancy, replace=True)
