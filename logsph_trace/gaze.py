@@ -125,16 +125,18 @@ def fixation_probability(occupancy, gaze, direction=None, half_angle=0.0, n_rays
     dense : bool
         Return an array of shape ``grid.shape`` instead of sparse results.
 
-    After :meth:`~logsph_trace.OccupancyGrid.move`, the cone is traced
-    through the cells as the map holds them (exactly, without resampling
-    the map), and each cell's probability is reported in the robot-frame
-    cell that holds its centre (summed where two land in one).
-
     Returns
     -------
     GazeTargets or numpy.ndarray
         Sparse: cells with a non-zero probability, most probable first
         (``t_enter`` is where the gaze first reaches each). Dense: the map.
+
+    Notes
+    -----
+    After :meth:`~logsph_trace.OccupancyGrid.move`, the cone is traced
+    through the cells as the map holds them (exactly, without resampling
+    the map), and each cell's probability is reported in the robot-frame
+    cell that holds its centre (summed where two land in one).
     """
     _check_occupancy(occupancy)
     origin, direction = gaze_pair(gaze, direction)
