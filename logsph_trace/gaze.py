@@ -19,6 +19,7 @@ from . import _validate as validate
 from ._jit import interrupts_after
 from ._validate import WrongTypeError
 from .cone import aggregate_cone, cones_on_gpu, sample_rays
+from .kernels import objects as _objects
 from .occupancy import _check_occupancy
 from .sensor import gaze_pair
 from .trace import trace_many
@@ -394,15 +395,14 @@ def _centroids(occupancy, ids):
 
     In one pass over the labels as the map holds them.
     """
-    flat = occupancy._held()[1].reshape(-1)
-    where = np.flatnonzero(np.isin(flat, ids))
-    which = np.searchsorted(ids, flat[where])
-    cells = np.stack(np.unravel_index(where, occupancy.grid.shape), axis=1)
-    centres = occupancy.grid.cell_centers(cells)
-    counts = np.bincount(which, minlength=ids.shape[0])
-    sums = np.stack([np.bincount(which, weights=centres[:, axis], minlength=ids.shape[0])
-                     for axis in range(3)], axis=1)
-    return occupancy._to_robot(sums / counts[:, None]), counts
+    grid = occupancy.grid
+    sums = np.zeros((grid.n_rho, ids.shape[0], 4))
+    radii = 0.5 * (grid.rho_edges[:-1] + grid.rho_edges[1:])
+    _objects.label_sums(occupancy._held()[1].reshape(-1), ids, radii,
+                        occupancy._column_directions(), sums)
+    sums = sums.sum(axis=0)
+    counts = sums[:, 0].astype(np.int64)
+    return occupancy._to_robot(sums[:, 1:] / counts[:, None]), counts
 
 
 class GazeAccumulator:

@@ -235,6 +235,12 @@ class FollowsTheRobot:
     they live here, beside the resampling they use.
     """
 
+    def _column_directions(self):
+        """Return ``column_directions(self.grid)``, kept."""
+        if self._directions is None:
+            self._directions = column_directions(self.grid)
+        return self._directions
+
     def _frame(self, write=False):
         """Return (log_odds, labels) on the host, in the robot's frame.
 
@@ -248,11 +254,9 @@ class FollowsTheRobot:
         if self._pose is None:
             return log_odds, self._labels
         if self._view is None:
-            if self._directions is None:
-                self._directions = column_directions(self.grid)
             spare, self._spare = self._spare, None
             self._view = resample(self.grid, log_odds, self._labels, *self._pose,
-                                  self._directions, spare)
+                                  self._column_directions(), spare)
         return self._view
 
     def _let_go(self, arrays):

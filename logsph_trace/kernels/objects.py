@@ -1,6 +1,7 @@
 """Objects in the map (``@jit`` only): connected components of occupied cells."""
 
 import numpy as np
+from numba import prange
 
 from .._jit import jit
 
@@ -58,3 +59,29 @@ def components(occupied, wrap_theta, cells, labels):
                             stack[top] = (ni * n_theta + nj) * n_phi + nk
                             top += 1
     return count
+
+
+@jit(parallel=True)
+def label_sums(labels, ids, radii, directions, sums):
+    """Per shell, count and sum the centres of the cells whose label is in ``ids``.
+
+    ``labels``: flat, shell-major (``grid.shape``); ``ids`` sorted; a cell's
+    centre is ``radii[i] * directions[column]`` (mid-radius times the
+    column's centre direction). ``sums`` (n_rho, len(ids), 4), zero, gets
+    (count, x, y, z) per shell and label: one pass over the labels, which
+    are mostly 0, instead of numpy's ``isin`` over every cell (4.7 ms a gaze
+    on a 64 x 360 x 180 map, ``python -m bench.replay``'s profile).
+    """
+    plane = directions.shape[0]
+    for i in prange(radii.shape[0]):
+        base = i * plane
+        for column in range(plane):
+            label = labels[base + column]
+            if label == 0:
+                continue
+            slot = np.searchsorted(ids, label)
+            if slot < ids.shape[0] and ids[slot] == label:
+                sums[i, slot, 0] += 1.0
+                sums[i, slot, 1] += radii[i] * directions[column, 0]
+                sums[i, slot, 2] += radii[i] * directions[column, 1]
+                sums[i, slot, 3] += radii[i] * directions[column, 2]
