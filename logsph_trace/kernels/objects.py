@@ -1,7 +1,6 @@
 """Objects in the map (``@jit`` only): connected components of occupied cells."""
 
 import numpy as np
-from numba import prange
 
 from .._jit import jit
 
@@ -61,7 +60,7 @@ def components(occupied, wrap_theta, cells, labels):
     return count
 
 
-@jit(parallel=True)
+@jit
 def label_sums(labels, ids, radii, directions, sums):
     """Per shell, count and sum the centres of the cells whose label is in ``ids``.
 
@@ -70,10 +69,12 @@ def label_sums(labels, ids, radii, directions, sums):
     column's centre direction). ``sums`` (n_rho, len(ids), 4), zero, gets
     (count, x, y, z) per shell and label: one pass over the labels, which
     are mostly 0, instead of numpy's ``isin`` over every cell (4.7 ms a gaze
-    on a 64 x 360 x 180 map, ``python -m bench.replay``'s profile).
+    on a 64 x 360 x 180 map, ``python -m bench.replay``'s profile). On one
+    thread: in parallel it took 0.8 s more to compile in the main job
+    (``python -m bench.first_call``).
     """
     plane = directions.shape[0]
-    for i in prange(radii.shape[0]):
+    for i in range(radii.shape[0]):
         base = i * plane
         for column in range(plane):
             label = labels[base + column]
