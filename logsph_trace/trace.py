@@ -45,11 +45,8 @@ def trace_many(grid, origins, directions=None, method="exact", parallel=True,
     parallel : bool
         Trace rays on all Numba threads (``prange``). The output is identical
         to the serial run. For ``"exact"`` every ray is traced once: serially
-        by appending; on two threads from the middle of the batch outwards,
-        each segment written to its final place by the thread that traced it
-        (the front half's through a small block scratch; the arrays are views
-        of a larger reservation whose other pages are never touched, so they
-        take no memory); on more threads in small chunks taken in order,
+        by appending (a batch under 2,048 rays, or one thread); on two
+        threads or more in small chunks taken in order,
         each traced into a scratch buffer of its thread's and copied to its
         place by that thread as soon as the chunks before it are counted.
         The baselines use a count pass and a fill pass.
