@@ -18,12 +18,15 @@ Recorded:
 - the time of a general move followed by reading ``log_odds``, on a map
   observed over about 140 degrees of azimuth and on one observed in one
   view, and of a rotation by whole azimuth cells (an index roll), each
-  against one integrate of a 640 x 480 frame in the same run.
+  against one integrate of a 640 x 480 frame in the same run; and, as
+  same-run A/Bs of ``resample``'s two shortcuts, the same moves with every
+  column traced and with the roll done as a gather of columns.
 
 Writes bench/results/egomotion.json, egomotion.md and egomotion.png (also
 docs/images/egomotion.png: the final maps seen from above).
 """
 
+import contextlib
 import time
 from pathlib import Path
 
@@ -32,6 +35,7 @@ import numpy as np
 
 import logsph_trace as lt
 from bench.workload import thread_arguments, write_results
+from logsph_trace import motion
 from logsph_trace.scene import robot_walk, room_scene, yaw_pose
 
 GRID = (0.3, 10.0, 64, 360, 180)
@@ -188,11 +192,39 @@ def move_timings(grid, scene, repeats):
         integrate = lt.OccupancyGrid(grid)
         integrate_ms = min(_seconds(lambda: integrate.integrate(points, (0.0, 0.0, 0.0)))
                            for _ in range(repeats)) * 1e3
-        for what, motions in (("general (2 degrees, 1.3 cm)", [general, np.linalg.inv(general)]),
-                              ("index roll (2 cells)", [roll, np.linalg.inv(roll)])):
-            occupancy.log_odds  # noqa: B018 -- centred before each series
-            rows.append((name, what, time_moves(occupancy, motions, repeats) * 1e3, integrate_ms))
+        for what, motions, switched_off in (
+                ("general (2 degrees, 1.3 cm)", [general, np.linalg.inv(general)], None),
+                ("general, every column traced (A/B)", [general, np.linalg.inv(general)],
+                 "_near_seen"),
+                ("index roll (2 cells)", [roll, np.linalg.inv(roll)], None),
+                ("index roll as a column gather (A/B)", [roll, np.linalg.inv(roll)],
+                 "whole_cell_turn")):
+            with _without(switched_off):
+                occupancy.log_odds  # noqa: B018 -- centred before each series
+                rows.append((name, what, time_moves(occupancy, motions, repeats) * 1e3,
+                             integrate_ms))
     return rows
+
+
+@contextlib.contextmanager
+def _without(mechanism):
+    """Switch off one of ``resample``'s shortcuts inside the block (None: none).
+
+    ``_near_seen``: every column's centre ray is traced, not only those
+    near an observed column; ``whole_cell_turn``: a turn by whole azimuth
+    cells is a gather of columns, not a block copy per shell.
+    """
+    if mechanism is None:
+        yield
+        return
+    saved = getattr(motion, mechanism)
+    stand_in = {"_near_seen": lambda grid, seen, delta: np.ones(seen.size, dtype=bool),
+                "whole_cell_turn": lambda grid, rotation: None}[mechanism]
+    setattr(motion, mechanism, stand_in)
+    try:
+        yield
+    finally:
+        setattr(motion, mechanism, saved)
 
 
 def _seconds(call):

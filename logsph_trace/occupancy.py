@@ -322,7 +322,6 @@ class OccupancyGrid(FollowsTheRobot):
         self._pose = None
         self._view = None
         self._directions = None
-        self._spare = None  # arrays the map let go of, for the next resampling
         self.p_hit, self.p_miss, self.p_min, self.p_max = p_hit, p_miss, p_min, p_max
         if log_odds is None:
             log_odds = np.zeros(grid.shape, dtype=np.float32)
@@ -331,7 +330,7 @@ class OccupancyGrid(FollowsTheRobot):
     def __getstate__(self):
         state = self.__dict__.copy()
         del state["_lock"]  # a lock is not copied: each copy gets its own
-        state["_view"] = state["_spare"] = None  # caches, made again when needed
+        state["_view"] = None  # a cache, made again when needed
         return state
 
     def __setstate__(self, state):
