@@ -44,6 +44,37 @@ def test_votes_take_the_majority_and_ties_the_smaller_label():
     assert occupancy.labels[5, 3, 2] == 3 and occupancy.labels[6, 7, 4] == 4
 
 
+def _majority(grid, cells, labels):
+    """Each hit cell's most frequent label, ties to the smaller (a dict per cell)."""
+    votes = {}
+    for cell, label in zip(map(tuple, cells.tolist()), labels.tolist()):
+        if cell[0] >= 0:
+            votes.setdefault(cell, {}).setdefault(label, 0)
+            votes[cell][label] += 1
+    expected = np.zeros(grid.shape, dtype=np.int64)
+    for cell, counts in votes.items():
+        expected[cell] = min(counts, key=lambda label: (-counts[label], label))
+    return expected
+
+
+@pytest.mark.parametrize("sensor", [(0.0, 0.0, 0.0), (0.0731, -0.0412, 0.0519)])
+@pytest.mark.parametrize("one_key", [True, False])
+def test_votes_match_a_per_cell_count(sensor, one_key, monkeypatch):
+    # Runs of equal votes (as neighbouring pixels give), interleaved runs for one
+    # cell, and labels up to the largest a map holds.
+    if not one_key:
+        monkeypatch.setattr(lt.occupancy, "SORT_KEY_MAX", 0)  # the two-key sort
+    grid = lt.Grid(0.3, 10.0, 9, 16, 8)
+    rng = np.random.default_rng(5)
+    centres = grid.cell_centers(np.stack([rng.integers(0, n, 40) for n in grid.shape], axis=1))
+    which = np.repeat(rng.integers(0, 40, 300), rng.integers(1, 6, 300))
+    points = centres[which] * rng.uniform(0.999, 1.001, (which.size, 1))
+    choices = np.array([1, 2, 3, 2**31 - 1])
+    labels = choices[np.repeat(rng.integers(0, 4, which.size // 3 + 1), 3)[:which.size]]
+    occupancy = lt.OccupancyGrid(grid).integrate(points, sensor, labels=labels)
+    assert np.array_equal(occupancy.labels, _majority(grid, grid.cell_of(points), labels))
+
+
 def test_depth_labels_are_the_points_labels_of_their_pixels():
     rng = np.random.default_rng(11)
     depth = rng.uniform(0.5, 8.0, (12, 16))
@@ -137,6 +168,19 @@ def test_the_gaze_names_the_object_on_the_table():
     assert top.n_cells == len(cells)
     np.testing.assert_allclose(top.centroid, GRID.cell_centers(cells).mean(axis=0), rtol=1e-12,
                                atol=1e-12)  # metres: x is 0 up to rounding
+
+
+def test_a_ranking_without_centroids_is_the_same_ranking():
+    # What a replay asks for: the same hits, without the pass over every label.
+    _, eyes, target, occupancy = _table_map()
+    occupancy.move((np.eye(3), [0.021, -0.013, 0.008]))
+    whole = lt.gaze_objects(occupancy, eyes, target - eyes)
+    lean = lt.gaze._ranked(occupancy, eyes, target - eyes, lt.gaze.DEFAULT_HALF_ANGLE, None,
+                           None, {}, lt.gaze._fixation_options(), centroids=False)
+    assert len(whole) == len(lean) > 1
+    for full, bare in zip(whole, lean):
+        assert full._replace(centroid=None, n_cells=None, point=None) == bare._replace(point=None)
+        assert np.array_equal(full.point, bare.point)
 
 
 def test_an_occluded_object_ranks_below_its_occluder():
