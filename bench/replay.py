@@ -11,7 +11,9 @@ threads, into a 64 x 360 x 180 map:
 - ``BagReplay`` with the label topic;
 - ``BagReplay`` without it (``label_objects`` before each frame's gazes);
 - the baseline: the same frames, already decoded, integrated with the same
-  moves and camera poses, and the same gazes ranked, without reading the bag.
+  moves and camera poses, and the same gazes ranked as the replay ranks
+  them (``gaze_objects`` without the objects' centroids, which events do
+  not carry), without reading the bag.
 
 Also the time of ``label_objects`` on the Motorcycle frame's map, when
 scikit-image is installed. Writes bench/results/replay.json and replay.md.
@@ -27,6 +29,7 @@ import numpy as np
 
 import logsph_trace as lt
 from bench.workload import write_results
+from logsph_trace.gaze import DEFAULT_HALF_ANGLE, _fixation_options, _ranked
 from logsph_trace.ros import MAP_FROM_BASE, BagReplay
 from logsph_trace.ros_scene import (
     PEOPLE,
@@ -56,7 +59,8 @@ def baseline(frames, intrinsics, scene, steps):
                                   labels=labels)
         for eyes, box in PEOPLE.values():
             gaze = MAP_FROM_BASE @ np.linalg.inv(pose) @ look_at(eyes, box_centre(scene, box))
-            lt.gaze_objects(occupancy, gaze[:3, 3], gaze[:3, 2])
+            _ranked(occupancy, gaze[:3, 3], gaze[:3, 2], DEFAULT_HALF_ANGLE, None, None, {},
+                    _fixation_options(), centroids=False)
     return time.perf_counter() - start
 
 

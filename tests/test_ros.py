@@ -250,3 +250,17 @@ def test_the_tree_interpolates_and_refuses_to_extrapolate():
     for stamp in (0.5, 2.5):
         with pytest.raises(LookupError, match="no transform"):
             tree.lookup("odom", "base_link", stamp)
+
+
+def test_a_lookup_sees_transforms_added_after_it():
+    # Lookups are remembered; a transform added later is not hidden by them.
+    tree = TransformTree(max_gap=1.0)
+    for seconds in (1.0, 2.0):
+        pose = base_pose(1, 1, turn=0.3 * seconds, walk=(seconds, 0.0, 0.0))
+        tree.add(transform(seconds, "odom", "base_link", pose), static=False)
+    before = tree.lookup("odom", "base_link", 1.5)
+    assert np.array_equal(tree.lookup("odom", "base_link", 1.5), before)
+    tree.add(transform(1.5, "odom", "base_link", np.eye(4)), static=False)
+    np.testing.assert_allclose(tree.lookup("odom", "base_link", 1.5), np.eye(4))
+    tree.add(transform(0.0, "base_link", "camera", camera_pose()), static=True)
+    np.testing.assert_allclose(tree.lookup("odom", "camera", 1.5), camera_pose(), atol=1e-15)
