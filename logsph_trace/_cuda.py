@@ -1,12 +1,22 @@
-"""The exact traversal on a CUDA GPU (numba-cuda): ``trace_many(..., device="cuda")``.
+"""The exact traversal on a CUDA GPU (numba-cuda): ``device="cuda"``.
 
 Imported only when a call asks for ``device="cuda"``, so ``import
 logsph_trace`` never needs CUDA. The per-ray code is the CPU's own
-``kernels.exact.trace_span`` and ``ray_bound``, compiled a second time by
-numba-cuda: there is no second copy of the traversal.
+(``kernels.exact.trace_span``, ``kernels.walk``, ``kernels.radial``),
+compiled a second time by numba-cuda: there is no second copy of the
+traversal.
 
-A batch runs in five device steps, and nothing but a few totals comes back
-to the host:
+Every call takes its scratch from a workspace kept between calls
+(:class:`Workspace`, one per Python thread): after the first call of a
+given size, a call allocates device memory only for the output it hands
+to the caller. Kernels loop over their rays (a grid-stride loop), so a
+batch of any size is one launch, and the host waits for the device once
+per call where it can: a scan of the map is two launches and no wait (one
+when the hits are wanted back), a batch of cones two launches and one
+wait. ``tests/test_cuda.py`` counts them under the simulator.
+
+``trace_many`` runs in five device steps, and two totals come back to the
+host before the output is made:
 
 1. a bound kernel: each ray's upper bound on its segments (``ray_bound``,
    phase 1 only);
@@ -19,13 +29,15 @@ to the host:
 
 The per-ray scratch (crossing times and zones, ``(3, size)`` each) is laid
 out ray-fastest, ``(3, size, rays in flight)``, so neighbouring threads read
-neighbouring words, and is allocated for at most ``RAYS_IN_FLIGHT`` rays,
+neighbouring words, and is kept for at most ``RAYS_IN_FLIGHT`` rays,
 fewer when it would not fit in ``MEMORY_SHARE`` of the free device memory.
 Rays are taken in parts whose regions fit in that share too; each part's
 output is exact, and the parts are joined at the end.
 """
 
+import contextlib
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -76,43 +88,46 @@ def require():
 # ---- kernels --------------------------------------------------------------------------------
 
 @kernel
-def _bound_kernel(origins, directions, grid, per_log, first, lookups, bounds):
-    """Ray ``first + k`` (thread k): its bound on segments into ``bounds[first + k]``.
+def _bound_kernel(origins, directions, grid, per_log, lookups, bounds):
+    """Rays k, k + threads, ... (thread k): each one's bound on segments into ``bounds``.
 
     ``per_log``: the grid's ``locate.per_log_of``, taken once on the host.
     """
     k = cuda.grid(1)
-    row = first + k
-    if k < lookups.shape[0] and row < origins.shape[0]:
-        bounds[row] = geometry.ray_bound(origins, directions, row, grid, per_log, lookups[k])
+    if k < lookups.shape[0]:
+        for row in range(k, origins.shape[0], lookups.shape[0]):
+            bounds[row] = geometry.ray_bound(origins, directions, row, grid, per_log, lookups[k])
 
 
 @kernel
-def _trace_kernel(origins, directions, t_max, grid, first, times, zones, lookups, regions, base,
+def _trace_kernel(origins, directions, t_max, grid, start, stop, times, zones, lookups, regions,
                   cells, t_enter, t_exit, ends, counts):
-    """Ray ``first + k`` (thread k) into its region, ``regions[row] - base`` on; its count.
+    """Trace rays ``start + k``, ``start + k + threads``, ... below ``stop`` (thread k).
+
+    Each goes into its region (``regions[row] - regions[start]`` on), its count into ``counts``.
 
     ``ends[row + 1]`` gets where its segments end (``trace_span``'s offsets).
     ``False`` is ``exact.TRACE``: a literal is fine here, where this kernel is
     the only one that compiles ``trace_span`` for the GPU.
     """
     k = cuda.grid(1)
-    row = first + k
-    if k < lookups.shape[0] and row < origins.shape[0]:
-        start = regions[row] - base
-        end, _ = exact.trace_span(row, row + 1, origins, directions, t_max, grid, times[:, :, k],
-                                  zones[:, :, k], lookups[k], False, cells, t_enter, t_exit,
-                                  ends, start, BIG)
-        counts[row] = end - start
+    if k < lookups.shape[0]:
+        base = regions[start]
+        for row in range(start + k, stop, lookups.shape[0]):
+            first = regions[row] - base
+            end, _ = exact.trace_span(row, row + 1, origins, directions, t_max, grid,
+                                      times[:, :, k], zones[:, :, k], lookups[k], False, cells,
+                                      t_enter, t_exit, ends, first, BIG)
+            counts[row] = end - first
 
 
 @kernel
-def _compact_kernel(regions, base, offsets, loose_cells, loose_enter, loose_exit, cells, t_enter,
+def _compact_kernel(regions, offsets, loose_cells, loose_enter, loose_exit, cells, t_enter,
                     t_exit):
     """Ray ``row``'s segments from its region to ``offsets[row] - offsets[0]`` on."""
     row = cuda.grid(1)
     if row < offsets.shape[0] - 1:
-        source = regions[row] - base
+        source = regions[row] - regions[0]
         target = offsets[row] - offsets[0]
         for s in range(offsets[row + 1] - offsets[row]):
             cells[target + s, 0] = loose_cells[source + s, 0]
@@ -123,51 +138,132 @@ def _compact_kernel(regions, base, offsets, loose_cells, loose_enter, loose_exit
 
 
 @kernel
-def _chunk_sums(values, sums):
-    """Thread t: the total of chunk t of ``values`` (``SCAN_CHUNK`` values)."""
+def _fill_kernel(values, value):
+    """``values[t] = value`` (1-D)."""
     t = cuda.grid(1)
-    low = t * SCAN_CHUNK
+    if t < values.shape[0]:
+        values[t] = value
+
+
+@kernel
+def _chunk_sums(values, chunk, sums):
+    """Thread t: the total of chunk t of ``values`` (``chunk`` values) into ``sums[t]``."""
+    t = cuda.grid(1)
+    low = t * chunk
     if low < values.shape[0]:
         total = 0
-        for i in range(low, min(low + SCAN_CHUNK, values.shape[0])):
+        for i in range(low, min(low + chunk, values.shape[0])):
             total += values[i]
         sums[t] = total
 
 
 @kernel
-def _chunk_scan(values, chunk_offsets, out):
-    """Thread t: the running totals of chunk t, from the chunks before it, into ``out``."""
+def _chunk_scan(values, chunk, sums, out):
+    """Thread t: the chunks before t added up, then chunk t's running totals into ``out``."""
     t = cuda.grid(1)
     if t == 0:
         out[0] = 0
-    low = t * SCAN_CHUNK
+    low = t * chunk
     if low < values.shape[0]:
-        running = chunk_offsets[t]
-        for i in range(low, min(low + SCAN_CHUNK, values.shape[0])):
+        running = 0
+        for c in range(t):
+            running += sums[c]
+        for i in range(low, min(low + chunk, values.shape[0])):
             running += values[i]
             out[i + 1] = running
 
 
-def exclusive_scan(values):
-    """Device array (n + 1,) int64: 0, then the running totals of ``values`` (n,) int64.
+def exclusive_scan(values, out, workspace):
+    """Fill ``out`` (n + 1,) int64 with 0, then the running totals of ``values`` (n,) int64.
 
-    Each thread adds up a chunk of ``SCAN_CHUNK`` values in order; the chunk
-    totals are scanned the same way (recursively, 32 times fewer each level),
-    then each thread writes its chunk's running totals. No barriers and no
-    shared memory: cheap enough under Numba's CUDA simulator too, which runs
-    each thread as Python.
+    Two launches whatever n: each of about sqrt(n) threads adds up a chunk
+    of about sqrt(n) values, then each adds up the chunk totals before its
+    own and writes its chunk's running totals. No barriers and no shared
+    memory, so it is cheap under Numba's CUDA simulator too, which runs each
+    thread as Python; about 1.5 n reads in all.
     """
     n = values.shape[0]
-    out = cuda.device_array(n + 1, dtype=np.int64)
-    chunks = max(1, math.ceil(n / SCAN_CHUNK))
-    if chunks == 1:
-        chunk_offsets = cuda.to_device(np.zeros(1, dtype=np.int64))
-    else:
-        sums = cuda.device_array(chunks, dtype=np.int64)
-        _launch(_chunk_sums, chunks, values, sums)
-        chunk_offsets = exclusive_scan(sums)
-    _launch(_chunk_scan, chunks, values, chunk_offsets, out)
+    chunk = max(SCAN_CHUNK, math.isqrt(max(n - 1, 0)) + 1)
+    chunks = max(1, -(-n // chunk))
+    sums = workspace.take("scan sums", (chunks,), np.int64)
+    _launch(_chunk_sums, chunks, values, chunk, sums)
+    _launch(_chunk_scan, chunks, values, chunk, sums, out)
     return out
+
+
+# ---- the workspace --------------------------------------------------------------------------
+
+# Device memory a Python thread's workspace keeps between calls; a buffer that
+# would take it past this is used for its call and freed.
+KEEP_BYTES = 1 << 31
+
+
+class Workspace:
+    """Device buffers kept between calls, one per name, each grown to the largest asked.
+
+    ``take`` hands out a view of the named buffer: after a call of some size,
+    a call of that size or less allocates nothing. A buffer taken with a
+    ``fill`` is filled once, when it is made, and the kernels that use it put
+    the fill back as they go (a scan's flags are cleared by the kernel that
+    applies them), so it is never refilled from the host. An exception in a
+    call drops every buffer (:func:`working`): one left half-used is never
+    handed out again.
+    """
+
+    def __init__(self):
+        self._held = {}
+
+    def take(self, name, shape, dtype, fill=None):
+        """Return a device array of ``shape`` and ``dtype``: the named buffer's first elements."""
+        shape = tuple(int(n) for n in shape)
+        size = math.prod(shape)
+        held = self._held.get(name)
+        if held is None or held.dtype != np.dtype(dtype) or held.size < size:
+            self._held.pop(name, None)  # the old one is freed before the new one is made
+            held = cuda.device_array(max(size, 1), dtype=dtype)
+            if fill is not None:
+                _launch(_fill_kernel, held.size, held, fill)
+            if self.nbytes + held.nbytes <= KEEP_BYTES:
+                self._held[name] = held
+        return held[:size].reshape(shape)
+
+    @property
+    def nbytes(self):
+        """Bytes of device memory held."""
+        return sum(held.nbytes for held in self._held.values())
+
+    def clear(self):
+        """Drop every buffer."""
+        self._held.clear()
+
+
+_threads = threading.local()
+
+
+@contextlib.contextmanager
+def working():
+    """Yield this Python thread's :class:`Workspace`; an exception drops its buffers."""
+    workspace = getattr(_threads, "workspace", None)
+    if workspace is None:
+        workspace = _threads.workspace = Workspace()
+    try:
+        yield workspace
+    except BaseException:
+        workspace.clear()
+        raise
+
+
+def _on_device(workspace, name, array):
+    """Copy a host array into the named buffer (no allocation after the first call)."""
+    held = workspace.take(name, array.shape, array.dtype)
+    if array.size:
+        held.copy_to_device(np.ascontiguousarray(array))
+    return held
+
+
+def _fetch(array):
+    """Copy a device array back: where the host waits for the device."""
+    return array.copy_to_host()
 
 
 # ---- the batch ------------------------------------------------------------------------------
@@ -214,43 +310,48 @@ def trace_many(grid, origins, directions, t_max):
     speak the CUDA Array Interface); ``Traces.to_host()`` copies them back.
     """
     require()
-    return _trace(grid, cuda.to_device(origins), cuda.to_device(directions),
-                  cuda.to_device(np.ascontiguousarray(t_max, dtype=np.float64)))
+    with working() as workspace:
+        return _trace(grid, _on_device(workspace, "origins", origins),
+                      _on_device(workspace, "directions", directions),
+                      _on_device(workspace, "t_max",
+                                 np.ascontiguousarray(t_max, dtype=np.float64)), workspace)
 
 
-def _scratch(size, n_rays):
-    """Allocate the traversal's per-ray scratch for the rays in flight.
+def _scratch(size, per_ray_bytes, n_rays, workspace):
+    """Return the traversal's per-ray scratch for the rays in flight.
 
     Crossing times and zones, ``(3, size)`` each, and the lookups, for
-    ``RAYS_IN_FLIGHT`` rays at most, fewer where that would not fit in
-    ``MEMORY_SHARE`` of the free memory.
+    ``RAYS_IN_FLIGHT`` rays at most, fewer where that and ``per_ray_bytes``
+    more a ray would not fit in ``MEMORY_SHARE`` of the free memory.
     """
-    per_ray = 2 * 3 * size * 8 + 8 * 8
+    per_ray = 2 * 3 * size * 8 + 8 * 8 + per_ray_bytes
     in_flight = max(1, min(RAYS_IN_FLIGHT, n_rays, int(_free_bytes() * MEMORY_SHARE) // per_ray))
-    return (cuda.device_array((3, size, in_flight), dtype=np.float64),
-            cuda.device_array((3, size, in_flight), dtype=np.int64),
-            cuda.device_array((in_flight, 8), dtype=np.int64))
+    return (workspace.take("times", (3, size, in_flight), np.float64),
+            workspace.take("zones", (3, size, in_flight), np.int64),
+            workspace.take("lookups", (in_flight, 8), np.int64))
 
 
-def _trace(grid, d_origins, d_directions, d_t_max):
+def _trace(grid, d_origins, d_directions, d_t_max, workspace):
     """``trace_many`` of rays already on the device."""
     n_rays = d_origins.shape[0]
     args = _device_grid(grid)
     size = int(geometry.scratch_size(*grid.shape))
-    times, zones, lookups = _scratch(size, n_rays)
+    times, zones, lookups = _scratch(size, 0, n_rays, workspace)
     in_flight = lookups.shape[0]
 
     per_log = float(locate.per_log_of(grid.rho_edges, grid.rho_kind))
-    bounds = cuda.device_array(max(n_rays, 1), dtype=np.int64)
-    for first in range(0, n_rays, in_flight):
-        _launch(_bound_kernel, in_flight, d_origins, d_directions, args, per_log, first, lookups,
+    bounds = workspace.take("bounds", (n_rays,), np.int64)
+    if n_rays:
+        _launch(_bound_kernel, in_flight, d_origins, d_directions, args, per_log, lookups,
                 bounds)
-    regions = exclusive_scan(bounds[:n_rays])
+    regions = exclusive_scan(bounds, workspace.take("regions", (n_rays + 1,), np.int64),
+                             workspace)
     budget = max(int(_free_bytes() * MEMORY_SHARE) // SEGMENT_BYTES, 1)
-    if int(regions[n_rays]) <= budget:  # the usual case: one total comes back
-        splits = [0, n_rays]
+    total = int(_fetch(regions[n_rays:])[0])
+    if total <= budget:  # the usual case: one total comes back
+        splits, host_regions = [0, n_rays], {0: 0, n_rays: total}
     else:  # split where the regions fill the budget, at least one ray a part
-        host_regions = regions.copy_to_host()
+        host_regions = _fetch(regions)
         splits = [0]
         while splits[-1] < n_rays:
             start = splits[-1]
@@ -258,50 +359,62 @@ def _trace(grid, d_origins, d_directions, d_t_max):
                                        side="right")) - 1
             splits.append(min(max(stop, start + 1), n_rays))
 
-    counts = cuda.device_array(max(n_rays, 1), dtype=np.int64)
-    ends = cuda.device_array(n_rays + 1, dtype=np.int64)
-    parts = [_trace_part(args, d_origins, d_directions, d_t_max, regions, start, stop, times,
-                         zones, lookups, ends, counts)
+    counts = workspace.take("counts", (n_rays,), np.int64)
+    ends = workspace.take("ends", (n_rays + 1,), np.int64)
+    parts = [_trace_part(args, d_origins, d_directions, d_t_max, regions, start, stop,
+                         int(host_regions[stop] - host_regions[start]), times, zones, lookups,
+                         ends, counts, workspace)
              for start, stop in zip(splits[:-1], splits[1:])]
-    offsets = exclusive_scan(counts[:n_rays])
     if len(parts) == 1:
-        cells, t_enter, t_exit = parts[0]
+        offsets, cells, t_enter, t_exit = parts[0]
     else:
-        cells, t_enter, t_exit = _join(parts)
+        offsets, (cells, t_enter, t_exit) = _joined_offsets(parts), _join(parts)
     return Traces(offsets, cells, t_enter, t_exit)
 
 
-def _trace_part(args, origins, directions, t_max, regions, start, stop, times, zones, lookups,
-                ends, counts):
-    """Trace rays ``start:stop`` into their regions, then copy them to exact-size arrays."""
-    base = int(regions[start])
-    room = max(int(regions[stop]) - base, 1)
-    loose_cells = cuda.device_array((room, 3), dtype=np.int32)
-    loose_enter = cuda.device_array(room, dtype=np.float64)
-    loose_exit = cuda.device_array(room, dtype=np.float64)
-    in_flight = lookups.shape[0]
-    for first in range(start, stop, in_flight):
-        _launch(_trace_kernel, min(in_flight, stop - first), origins, directions, t_max, args,
-                first, times, zones, lookups[:min(in_flight, stop - first)], regions, base,
-                loose_cells, loose_enter, loose_exit, ends, counts)
-    offsets = exclusive_scan(counts[start:stop])
-    total = int(offsets[stop - start])  # one number back to the host
+def _trace_part(args, origins, directions, t_max, regions, start, stop, room, times, zones,
+                lookups, ends, counts, workspace):
+    """Trace rays ``start:stop`` into their regions, then copy them to exact-size arrays.
+
+    ``room``: the segments their regions hold. Returns the part's offsets
+    (from 0) and segments, new device arrays.
+    """
+    room = max(room, 1)
+    loose_cells = workspace.take("loose cells", (room, 3), np.int32)
+    loose_enter = workspace.take("loose enter", (room,), np.float64)
+    loose_exit = workspace.take("loose exit", (room,), np.float64)
+    if stop > start:
+        _launch(_trace_kernel, min(lookups.shape[0], stop - start), origins, directions, t_max,
+                args, start, stop, times, zones, lookups, regions, loose_cells, loose_enter,
+                loose_exit, ends, counts)
+    offsets = exclusive_scan(counts[start:stop], cuda.device_array(stop - start + 1,
+                                                                  dtype=np.int64), workspace)
+    total = int(_fetch(offsets[stop - start:])[0])  # one number back to the host
     cells = cuda.device_array((total, 3), dtype=np.int32)
     t_enter = cuda.device_array(total, dtype=np.float64)
     t_exit = cuda.device_array(total, dtype=np.float64)
-    _launch(_compact_kernel, stop - start, regions[start:stop + 1], base, offsets, loose_cells,
-            loose_enter, loose_exit, cells, t_enter, t_exit)
-    return cells, t_enter, t_exit
+    if stop > start:
+        _launch(_compact_kernel, stop - start, regions[start:stop + 1], offsets, loose_cells,
+                loose_enter, loose_exit, cells, t_enter, t_exit)
+    return offsets, cells, t_enter, t_exit
+
+
+def _joined_offsets(parts):
+    """Return the parts' offsets, each from 0, as one array of offsets (on the device)."""
+    host = [_fetch(part[0]) for part in parts]
+    at = np.cumsum([0] + [h[-1] for h in host[:-1]])
+    return cuda.to_device(np.concatenate([host[0]] + [h[1:] + a for h, a in
+                                                      zip(host[1:], at[1:])]))
 
 
 def _join(parts):
-    """Concatenate the super-batches' segment arrays on the device."""
-    total = sum(part[1].shape[0] for part in parts)
+    """Concatenate the parts' segment arrays on the device."""
+    total = sum(part[2].shape[0] for part in parts)
     cells = cuda.device_array((total, 3), dtype=np.int32)
     t_enter = cuda.device_array(total, dtype=np.float64)
     t_exit = cuda.device_array(total, dtype=np.float64)
     at = 0
-    for part_cells, part_enter, part_exit in parts:
+    for _, part_cells, part_enter, part_exit in parts:
         n = part_enter.shape[0]
         if n:
             cells[at:at + n].copy_to_device(part_cells)
@@ -451,7 +564,8 @@ def trace_gpu_inputs(grid, origins, directions, t_max):
     for row, (name, array, message) in zip(rows, problems):
         if row >= 0:
             _bad_row(name, array, row, message)
-    return _trace(grid, origins, unit, d_t_max)
+    with working() as workspace:
+        return _trace(grid, origins, unit, d_t_max, workspace)
 
 
 def _bad_row(name, array, row, message):
@@ -502,92 +616,100 @@ def _cells_on_device(grid, points):
 
 # ---- cones ----------------------------------------------------------------------------------
 #
-# A cone's cells are aggregated as on the CPU (``kernels.cone``): at each
-# shell the cone's cells fill a (theta, phi) box, the boxes of all cones laid
-# end to end. One thread per ray: the extents of the boxes (atomic min and
-# max), then each ray's weight added once to every box it crosses (atomic
-# adds, so the weights' last bits depend on the order the GPU runs rays in)
-# and the first reach (atomic min), then one thread per shell writes the
-# reached boxes as cells. A ray re-entering a cell is found in a bitmap of
-# the boxes of its cone, one per ray in flight.
+# A batch of cones is two launches and one wait. One thread per ray (in a
+# grid-stride loop) traces the ray into a region of its own and adds its
+# weight to each cell it reaches, in arrays of one value per cell of the
+# grid and cone (atomic adds, so the weights' last bits depend on the order
+# the GPU runs rays in; atomic min for the first reach). A cell a thread is
+# first to touch goes on a list. One thread per listed cell then writes the
+# reached ones out and resets their values, so the arrays are ready for the
+# next batch without a pass over the grid. The host sorts the few cells that
+# come back into the CPU's order (``aggregate_boxes``: cone, shell, azimuth
+# from the cone's seam shift, elevation).
+#
+# A ray re-entering a cell adds nothing. Along a line the azimuth about the
+# y axis is monotonic and sweeps less than a half turn, so a ray's segments
+# in one azimuthal column are consecutive: a re-entry is found among the
+# segments since the ray entered the column, with no per-ray set of cells.
 
-@kernel
-def _extent_kernel(offsets, cells, ray_cone, j_shifts, n_theta, low_j, high_j, low_k, high_k):
-    """Ray ``ray`` (thread): widen its cone's per-shell boxes to hold its cells."""
-    ray = cuda.grid(1)
-    if ray < offsets.shape[0] - 1:
-        cone = ray_cone[ray]
-        for seg in range(offsets[ray], offsets[ray + 1]):
-            i = cells[seg, 0]
-            j = _cone.shifted(cells[seg, 1], j_shifts[cone], n_theta)
-            k = np.int64(cells[seg, 2])
-            cuda.atomic.min(low_j, (cone, i), j)
-            cuda.atomic.max(high_j, (cone, i), j)
-            cuda.atomic.min(low_k, (cone, i), k)
-            cuda.atomic.max(high_k, (cone, i), k)
+TOUCHED = 1  # ``state``: a ray's first reach is in ``first``
+REACHED = 2  # and a ray's weight is in ``weight``: the cell is an answer
 
 
 @kernel
-def _weigh_kernel(first_ray, offsets, cells, t_enter, t_exit, ray_cone, ray_weights, j_shifts,
-                  n_theta, n_phi, low_j, low_k, span_k, base, seen, fixation, log_odds,
-                  min_distance, unknown, free_below, weight, first, reached):
-    """Ray ``first_ray + k`` (thread k): its weight once into every box it crosses.
+def _cone_kernel(ray_from, ray_to, cone_from, origins, directions, t_max, ray_weights, ray_cone,
+                 grid, times, zones, lookups, cells, t_enter, t_exit, ends, room, fixation,
+                 log_odds, min_distance, unknown, free_below, weight, first, state, listed,
+                 counters):
+    """Trace and weigh rays ``ray_from + k``, ``+ threads``, ... below ``ray_to`` (thread k).
 
-    With ``fixation``, its weight times the probability that the box's cell
-    is the first occupied one it meets (as ``kernels.cone.fixation_boxes``).
+    Each is traced into thread k's region (``room`` segments from ``k *
+    room``), then its weight goes to each cell it reaches, in ``weight``
+    (with ``fixation``, times the probability that the cell is the first
+    occupied one it meets, as ``kernels.cone.fixation_boxes``).
 
-    ``seen`` (words, rays in flight) uint32: thread k's bitmap of its cone's
-    boxes, in column k (neighbouring threads, neighbouring words).
+    ``weight``, ``first`` and ``state`` hold a value per cell of each cone
+    from ``cone_from`` on (cone, then the map's flat index); a slot first
+    touched goes on ``listed`` (``counters[0]`` of them).
     """
     k = cuda.grid(1)
-    ray = first_ray + k
-    if k < seen.shape[1] and ray < offsets.shape[0] - 1:
-        cone = ray_cone[ray]
-        start = base[cone, 0]
-        for word in range((base[cone, base.shape[1] - 1] - start + 31) // 32):
-            seen[word, k] = 0
-        clear = 1.0  # fixation: the probability that nothing so far stopped the gaze
-        for seg in range(offsets[ray], offsets[ray + 1]):
-            box = _cone.box_of(cells, seg, low_j[cone], low_k[cone], span_k[cone], base[cone],
-                               n_theta, j_shifts[cone])
-            cuda.atomic.min(first, box, t_enter[seg])
-            if fixation and t_exit[seg] <= min_distance:
-                continue  # not counted, and not seen: met again beyond, it counts there
-            word = (box - start) // 32
-            bit = np.uint32(1) << np.uint32((box - start) % 32)
-            if (seen[word, k] & bit) == 0:  # not a re-entry
-                seen[word, k] |= bit
-                reached[box] = 1
+    if k < lookups.shape[0]:
+        n_theta = grid.theta_edges.shape[0] - 1
+        n_phi = grid.phi_edges.shape[0] - 1
+        n_cells = (grid.rho_edges.shape[0] - 1) * n_theta * n_phi
+        low = k * room
+        for ray in range(ray_from + k, ray_to, lookups.shape[0]):
+            high, _ = exact.trace_span(ray, ray + 1, origins, directions, t_max, grid,
+                                       times[:, :, k], zones[:, :, k], lookups[k], False, cells,
+                                       t_enter, t_exit, ends, low, BIG)
+            cone_base = (ray_cone[ray] - cone_from) * n_cells
+            clear = 1.0  # fixation: the probability that nothing so far stopped the gaze
+            column_from = low  # the first segment in the current azimuthal column
+            for seg in range(low, high):
+                i, j, kk = cells[seg, 0], cells[seg, 1], cells[seg, 2]
+                if seg > low and j != cells[seg - 1, 1]:
+                    column_from = seg
+                slot = cone_base + (i * n_theta + j) * n_phi + kk
+                cuda.atomic.min(first, slot, t_enter[seg])
+                if cuda.atomic.cas(state, slot, 0, TOUCHED) == 0:
+                    listed[cuda.atomic.add(counters, 0, 1)] = slot
+                if fixation and t_exit[seg] <= min_distance:
+                    continue  # not counted, and not seen: met again beyond, it counts there
+                again = False
+                for back in range(column_from, seg):
+                    if (cells[back, 0] == i and cells[back, 2] == kk
+                            and not (fixation and t_exit[back] <= min_distance)):
+                        again = True
+                if again:
+                    continue
+                state[slot] = REACHED
                 if fixation:
                     p = _cone.stop_probability(log_odds, cells, seg, n_theta, n_phi, unknown,
                                                free_below)
-                    cuda.atomic.add(weight, box, ray_weights[ray] * p * clear)
+                    cuda.atomic.add(weight, slot, ray_weights[ray] * p * clear)
                     clear *= 1.0 - p
                 else:
-                    cuda.atomic.add(weight, box, ray_weights[ray])
+                    cuda.atomic.add(weight, slot, ray_weights[ray])
 
 
 @kernel
-def _box_cells_kernel(low_j, low_k, span_k, base, j_shifts, n_theta, weight, first, at,
-                      out_cells, out_weight, out_first):
-    """Shell ``i`` of cone ``c`` (thread ``c * n_rho + i``): its reached boxes as cells.
+def _cone_cells_kernel(listed, counters, cone_from, weight, first, state, out):
+    """Write listed slot ``t`` (thread) out if reached; reset its values either way.
 
-    They go to ``at[box]`` on, ``at`` being the exclusive scan of the reached flags.
+    Out at ``counters[1]``: (``cone_from``, the slot, its weight, its first reach).
     """
     t = cuda.grid(1)
-    n_rho = base.shape[1] - 1
-    cone = t // n_rho
-    i = t - cone * n_rho
-    if cone < base.shape[0]:
-        for box in range(base[cone, i], base[cone, i + 1]):
-            found = at[box]
-            if at[box + 1] != found:
-                out_cells[found, 0] = i
-                out_cells[found, 1], out_cells[found, 2] = _cone.unbox(
-                    box, i, low_j[cone], low_k[cone], span_k[cone], base[cone], n_theta,
-                    j_shifts[cone])
-                out_weight[found] = weight[box]
-                out_first[found] = first[box]
+    if t < counters[0]:
+        slot = listed[t]
+        if state[slot] == REACHED:
+            at = cuda.atomic.add(counters, 1, 1)
+            out[at, 0] = cone_from
+            out[at, 1] = slot
+            out[at, 2] = weight[slot]
+            out[at, 3] = first[slot]
+        weight[slot] = 0.0
+        first[slot] = np.inf
+        state[slot] = 0
 
 
 @kernel
@@ -607,64 +729,68 @@ def aggregate_cones(grid, origins, directions, ray_weights, counts, j_shifts, fi
     min_distance, unknown, free_below)``, the map flat on the device, for
     first-occupied probabilities instead of weights (see
     ``cone.aggregate_cells``). Returns, per cone, its (cells, summed values,
-    t_first) on the host, unsorted (shell by shell, in box order, as the
-    CPU's ``aggregate_boxes``).
+    t_first) on the host, in the CPU's order (``aggregate_boxes``: shell by
+    shell, then azimuth from the seam shift, then elevation).
     """
     require()
-    n_cones, n_rho, n_theta = len(counts), grid.n_rho, grid.n_theta
+    n_cones, n_rays = len(counts), origins.shape[0]
+    n_theta, n_phi = grid.n_theta, grid.n_phi
+    n_cells = math.prod(grid.shape)
     ray_cone = np.repeat(np.arange(n_cones, dtype=np.int64), counts)
-    traces = _trace(grid, cuda.to_device(origins), cuda.to_device(directions),
-                    cuda.to_device(np.full(origins.shape[0], np.inf)))
-    d_ray_cone = cuda.to_device(ray_cone)
-    d_j_shifts = cuda.to_device(np.asarray(j_shifts, dtype=np.int64))
-    extents = [np.full((n_cones, n_rho), BIG, dtype=np.int64),
-               np.full((n_cones, n_rho), -1, dtype=np.int64)]
-    low_j, high_j, low_k, high_k = (cuda.to_device(extents[e]) for e in (0, 1, 0, 1))
-    n_rays = origins.shape[0]
-    _launch(_extent_kernel, n_rays, traces.offsets, traces.cells, d_ray_cone, d_j_shifts,
-            n_theta, low_j, high_j, low_k, high_k)
-
-    # The layout, on the host: 4 x cones x shells numbers.
-    low_j, high_j, low_k, high_k = (a.copy_to_host() for a in (low_j, high_j, low_k, high_k))
-    span_k = np.zeros((n_cones, n_rho), dtype=np.int64)
-    base = np.zeros((n_cones, n_rho + 1), dtype=np.int64)
-    for cone in range(n_cones):
-        span_k[cone], base[cone] = _cone.box_bases(low_j[cone], high_j[cone], low_k[cone],
-                                                   high_k[cone])
-    sizes = base[:, n_rho].copy()
-    base += np.concatenate(([0], np.cumsum(sizes)[:-1]))[:, None]  # cones end to end
-    total = int(sizes.sum())
-
-    d_low_j, d_low_k, d_span_k, d_base = (cuda.to_device(a) for a in (low_j, low_k, span_k, base))
-    weight = cuda.to_device(np.zeros(max(total, 1)))
-    first = cuda.to_device(np.full(max(total, 1), np.inf))
-    reached = cuda.to_device(np.zeros(max(total, 1), dtype=np.int64))
-    words = max(1, (int(sizes.max(initial=0)) + 31) // 32)
-    share = int(_free_bytes() * MEMORY_SHARE)
-    in_flight = max(1, min(RAYS_IN_FLIGHT, n_rays, share // (4 * words)))
-    seen = cuda.device_array((words, in_flight), dtype=np.uint32)
-    d_weights = cuda.to_device(np.ascontiguousarray(ray_weights, dtype=np.float64))
-    # The kernel's fixation switch and its map: a stand-in one when only weights are summed.
-    weigh = ((False, cuda.device_array(1, dtype=np.float32), 0.0, 0.0, 0.0) if fixation is None
-             else (True, *fixation))
-    for first_ray in range(0, n_rays, in_flight):
-        _launch(_weigh_kernel, in_flight, first_ray, traces.offsets, traces.cells,
-                traces.t_enter, traces.t_exit, d_ray_cone, d_weights, d_j_shifts, n_theta,
-                grid.n_phi, d_low_j, d_low_k, d_span_k, d_base, seen, *weigh, weight, first,
-                reached)
-    at = exclusive_scan(reached[:total])
-    n_cells = int(at[total])
-    out_cells = cuda.device_array((max(n_cells, 1), 3), dtype=np.int32)
-    out_weight = cuda.device_array(max(n_cells, 1))
-    out_first = cuda.device_array(max(n_cells, 1))
-    _launch(_box_cells_kernel, n_cones * n_rho, d_low_j, d_low_k, d_span_k, d_base, d_j_shifts,
-            n_theta, weight, first, at, out_cells, out_weight, out_first)
-    cells, weights, t_first = (a.copy_to_host()[:n_cells]
-                               for a in (out_cells, out_weight, out_first))
-    bounds = cuda.device_array(n_cones + 1, dtype=np.int64)
-    _launch(_gather_kernel, n_cones + 1, at, cuda.to_device(np.append(base[:, 0], total)), bounds)
-    bounds = bounds.copy_to_host()
-    return [(cells[lo:hi], weights[lo:hi], t_first[lo:hi])
+    cone_rays = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+    room = int(geometry.max_segments(*grid.shape))
+    with working() as workspace:
+        args = _device_grid(grid)
+        times, zones, lookups = _scratch(int(geometry.scratch_size(*grid.shape)),
+                                         room * SEGMENT_BYTES, n_rays, workspace)
+        in_flight = lookups.shape[0]
+        d_origins = _on_device(workspace, "origins", origins)
+        d_directions = _on_device(workspace, "directions", directions)
+        d_weights = _on_device(workspace, "ray weights",
+                               np.ascontiguousarray(ray_weights, dtype=np.float64))
+        d_ray_cone = _on_device(workspace, "ray cones", ray_cone)
+        t_max = workspace.take("no end", (n_rays,), np.float64, fill=np.inf)
+        cells = workspace.take("cone cells", (in_flight * room, 3), np.int32)
+        t_enter = workspace.take("cone enter", (in_flight * room,), np.float64)
+        t_exit = workspace.take("cone exit", (in_flight * room,), np.float64)
+        ends = workspace.take("ends", (n_rays + 1,), np.int64)
+        # Cones in groups whose per-cell values fit in the memory share.
+        per_cone = n_cells * (8 + 8 + 4)
+        group = max(1, min(n_cones, int(_free_bytes() * MEMORY_SHARE) // per_cone))
+        weight = workspace.take("cone weight", (group * n_cells,), np.float64, fill=0.0)
+        first = workspace.take("cone first", (group * n_cells,), np.float64, fill=np.inf)
+        state = workspace.take("cone state", (group * n_cells,), np.int32, fill=0)
+        capacity = max(1, min(group * n_cells, n_rays * room))
+        listed = workspace.take("cone listed", (capacity,), np.int64)
+        out = workspace.take("cone out", (max(1, min(n_cones * n_cells, n_rays * room)), 4),
+                             np.float64)
+        counters = _on_device(workspace, "cone counters", np.zeros(2, dtype=np.int64))
+        weigh = ((False, workspace.take("no map", (1,), np.float32), 0.0, 0.0, 0.0)
+                 if fixation is None else (True, *fixation))
+        for cone_from in range(0, n_cones, group):
+            cone_to = min(cone_from + group, n_cones)
+            ray_from, ray_to = int(cone_rays[cone_from]), int(cone_rays[cone_to])
+            if ray_to > ray_from:
+                _launch(_cone_kernel, min(in_flight, ray_to - ray_from), ray_from, ray_to,
+                        cone_from, d_origins, d_directions, t_max, d_weights, d_ray_cone, args,
+                        times, zones, lookups, cells, t_enter, t_exit, ends, room, *weigh,
+                        weight, first, state, listed, counters)
+            _launch(_cone_cells_kernel, capacity, listed, counters, cone_from, weight, first,
+                    state, out)
+            if cone_to < n_cones:  # the list again from its start (the output count goes on)
+                counters[:1].copy_to_device(np.zeros(1, dtype=np.int64))
+        found = int(_fetch(counters)[1])  # where the host waits
+        rows = _fetch(out[:found]) if found else np.empty((0, 4))
+    cones = rows[:, 0].astype(np.int64) + (rows[:, 1].astype(np.int64) // n_cells)
+    slots = rows[:, 1].astype(np.int64) % n_cells
+    shell, column = np.divmod(slots, n_theta * n_phi)
+    j, k = np.divmod(column, n_phi)
+    shifted = (j + np.asarray(j_shifts, dtype=np.int64)[cones]) % n_theta
+    order = np.lexsort((k, shifted, shell, cones))
+    cells_out = np.stack([shell, j, k], axis=1).astype(np.int32)[order]
+    values, t_first, cones = rows[order, 2], rows[order, 3], cones[order]
+    bounds = np.searchsorted(cones, np.arange(n_cones + 1))
+    return [(cells_out[lo:hi], values[lo:hi], t_first[lo:hi])
             for lo, hi in zip(bounds[:-1], bounds[1:])]
 
 
@@ -672,78 +798,84 @@ def aggregate_cones(grid, origins, directions, ray_weights, counts, j_shifts, fi
 #
 # The CPU's per-ray code (``kernels.walk``: ``sensor_ray`` and
 # ``walk_ray``, or ``radial_ray`` for a sensor at the centre) marks the cells
-# each ray frees, one thread per ray, into flags shared by all threads: every
-# write is a 1, so threads may write the same flag. One thread per cell then
-# applies OctoMap's update, once per cell, as ``apply_scan`` does.
+# each ray frees, one thread per ray in a grid-stride loop, into flags shared
+# by all threads: every write is a 1, so threads may write the same flag;
+# the same thread flags its ray's hit. Then one thread per cell (per column
+# from the centre) applies OctoMap's update once per cell, as ``apply_scan``
+# does, and clears the flags it read: the next scan finds them zero.
 
 @kernel
-def _mark_scan_kernel(first_row, origin, points, max_range, grid, zone, times, zones, lookups,
-                      free, hits):
-    """Ray ``first_row + k`` (thread k) of a scan from ``origin``: flag its free cells.
+def _mark_scan_kernel(ox, oy, oz, zone_rho, zone_theta, zone_phi, points, max_range, grid,
+                      times, zones, lookups, free, hit, hits):
+    """Flag the free and hit cells of rays k, k + threads, ... (thread k) from (ox, oy, oz).
 
-    Flags are column-major, as ``apply_scan``'s; ``hits[row]``: its hit there, or -1.
+    Flags are column-major, as ``apply_scan``'s; ``hits[row]``: each ray's hit there, or -1.
     """
     k = cuda.grid(1)
-    row = first_row + k
-    if k < lookups.shape[0] and row < points.shape[0]:
-        ox = origin[0]
-        oy = origin[1]
-        oz = origin[2]
-        dx, dy, dz, distance, is_hit, is_ray = _walk.sensor_ray(points, row, ox, oy, oz,
-                                                                max_range)
-        hits[row] = -1
-        if is_ray:
-            hits[row] = _walk.walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, zone[0],
-                                       zone[1], zone[2], grid, times[:, :, k], zones[:, :, k],
-                                       lookups[k], free, 0)
+    if k < lookups.shape[0]:
+        for row in range(k, points.shape[0], lookups.shape[0]):
+            dx, dy, dz, distance, is_hit, is_ray = _walk.sensor_ray(points, row, ox, oy, oz,
+                                                                    max_range)
+            cell = -1
+            if is_ray:
+                cell = _walk.walk_ray(ox, oy, oz, dx, dy, dz, distance, is_hit, zone_rho,
+                                      zone_theta, zone_phi, grid, times[:, :, k],
+                                      zones[:, :, k], lookups[k], free, 0)
+            hits[row] = cell
+            if cell >= 0:
+                hit[cell] = 1
 
 
 @kernel
-def _mark_radial_kernel(points, max_range, grid, per_log, free_extent, hits):
+def _mark_radial_kernel(points, max_range, grid, per_log, free_extent, hit, hits):
     """Ray ``row`` (thread) from the grid's origin: widen its column's free extent.
 
-    ``hits[row]``: its hit cell's map index, or -1.
+    It flags its hit cell (the map's index); ``hits[row]``: that cell, or -1.
     """
     row = cuda.grid(1)
     if row < points.shape[0]:
         guesses = cuda.local.array(3, np.int64)
         for zone in range(3):
             guesses[zone] = -1
-        column, free, hits[row] = _radial.radial_ray(points, row, max_range, grid, per_log,
-                                                     guesses)
+        column, free, cell = _radial.radial_ray(points, row, max_range, grid, per_log, guesses)
+        hits[row] = cell
+        if cell >= 0:
+            hit[cell] = 1
         if column >= 0 and free > 0:
             cuda.atomic.max(free_extent, column, free)
 
 
 @kernel
-def _flag_hits_kernel(hits, flags):
-    """Ray ``row`` (thread): flag its hit cell."""
-    row = cuda.grid(1)
-    if row < hits.shape[0] and hits[row] >= 0:
-        flags[hits[row]] = 1
-
-
-@kernel
 def _apply_scan_kernel(log_odds, free, hit, n_rho, log_hit, log_miss, log_min, log_max):
-    """Cell ``index`` (thread, column-major): OctoMap's update, a hit winning."""
+    """Cell ``index`` (thread, column-major): OctoMap's update, a hit winning; flags cleared."""
     index = cuda.grid(1)
     if index < free.shape[0] and (free[index] != 0 or hit[index] != 0):
         n_columns = free.shape[0] // n_rho
         cell = (index % n_rho) * n_columns + index // n_rho
         _update._update(log_odds, cell, hit[index] != 0, free[index] != 0, log_hit, log_miss,
                         log_min, log_max)
+        free[index] = 0
+        hit[index] = 0
 
 
 @kernel
 def _apply_radial_kernel(log_odds, free_extent, hit, log_hit, log_miss, log_min, log_max):
-    """Cell ``cell`` (thread, map index): free below its column's extent; a hit wins."""
-    cell = cuda.grid(1)
-    if cell < log_odds.shape[0]:
-        n_columns = free_extent.shape[0]
-        free = cell // n_columns < free_extent[cell % n_columns]
-        if free or hit[cell] != 0:
-            _update._update(log_odds, cell, hit[cell] != 0, free, log_hit, log_miss, log_min,
-                            log_max)
+    """Column ``column`` (thread): its shells free below its extent, a hit winning.
+
+    In the map's index (neighbouring threads, neighbouring cells); its
+    extent and flags cleared.
+    """
+    column = cuda.grid(1)
+    n_columns = free_extent.shape[0]
+    if column < n_columns:
+        extent = free_extent[column]
+        for cell in range(column, log_odds.shape[0], n_columns):
+            free = cell // n_columns < extent
+            if free or hit[cell] != 0:
+                _update._update(log_odds, cell, hit[cell] != 0, free, log_hit, log_miss,
+                                log_min, log_max)
+                hit[cell] = 0
+        free_extent[column] = 0
 
 
 @kernel
@@ -758,41 +890,39 @@ def integrate(grid, log_odds, points, origin, max_range, update, want_hits=False
     """Integrate a checked scan into the device map ``log_odds`` (flat float32).
 
     ``update``: the log-odds of a hit and a miss and the clamps. The same
-    cells as the CPU's ``OccupancyGrid.integrate``, the same update. With
-    ``want_hits``, return each ray's hit cell on the host, or -1, indexed as
-    the CPU's kernels index it (the map's index from the centre, else
-    column-major).
+    cells as the CPU's ``OccupancyGrid.integrate``, the same update. Two
+    launches; the host waits only when ``want_hits``: then it returns each
+    ray's hit cell on the host, or -1, indexed as the CPU's kernels index it
+    (the map's index from the centre, else column-major).
     """
     require()
     n_rays, n_cells = points.shape[0], log_odds.shape[0]
     if n_rays == 0:
         return np.empty(0, dtype=np.int64)
     args = _device_grid(grid)
-    d_points = cuda.to_device(points)
-    hits = cuda.device_array(n_rays, dtype=np.int64)
-    hit = cuda.to_device(np.zeros(n_cells, dtype=np.uint8))
-    if not np.any(origin):  # the egocentric case: every ray is radial
-        free_extent = cuda.to_device(np.zeros(grid.n_theta * grid.n_phi, dtype=np.int64))
-        per_log = locate.log_cells(grid.rho_edges) if grid.rho_kind == locate.LOG else 0.0
-        _launch(_mark_radial_kernel, n_rays, d_points, max_range, args, per_log, free_extent,
-                hits)
-        _launch(_flag_hits_kernel, n_rays, hits, hit)
-        _launch(_apply_radial_kernel, n_cells, log_odds, free_extent, hit, *update)
-        return hits.copy_to_host() if want_hits else None
-    zone = np.array([
-        locate.rho_zone(*origin, grid.rho_edges, grid.rho_kind),
-        locate.theta_zone(origin[0], origin[2], grid.theta_edges, grid.theta_kind),
-        locate.phi_zone(*origin, grid.phi_edges, grid.phi_kind)], dtype=np.int64)
-    free = cuda.to_device(np.zeros(n_cells, dtype=np.uint8))
-    times, zones, lookups = _scratch(int(geometry.scratch_size(*grid.shape)), n_rays)
-    d_origin, d_zone = cuda.to_device(origin), cuda.to_device(zone)
-    in_flight = lookups.shape[0]
-    for first_row in range(0, n_rays, in_flight):
-        _launch(_mark_scan_kernel, in_flight, first_row, d_origin, d_points, max_range, args,
-                d_zone, times, zones, lookups, free, hits)
-    _launch(_flag_hits_kernel, n_rays, hits, hit)
-    _launch(_apply_scan_kernel, n_cells, log_odds, free, hit, grid.n_rho, *update)
-    return hits.copy_to_host() if want_hits else None
+    with working() as workspace:
+        d_points = _on_device(workspace, "points", points)
+        hits = workspace.take("hits", (n_rays,), np.int64)
+        hit = workspace.take("hit flags", (n_cells,), np.uint8, fill=0)
+        if not np.any(origin):  # the egocentric case: every ray is radial
+            n_columns = grid.n_theta * grid.n_phi
+            free_extent = workspace.take("free extents", (n_columns,), np.int64, fill=0)
+            per_log = locate.log_cells(grid.rho_edges) if grid.rho_kind == locate.LOG else 0.0
+            _launch(_mark_radial_kernel, n_rays, d_points, max_range, args, per_log,
+                    free_extent, hit, hits)
+            _launch(_apply_radial_kernel, n_columns, log_odds, free_extent, hit, *update)
+        else:
+            zone = (locate.rho_zone(*origin, grid.rho_edges, grid.rho_kind),
+                    locate.theta_zone(origin[0], origin[2], grid.theta_edges, grid.theta_kind),
+                    locate.phi_zone(*origin, grid.phi_edges, grid.phi_kind))
+            free = workspace.take("free flags", (n_cells,), np.uint8, fill=0)
+            times, zones, lookups = _scratch(int(geometry.scratch_size(*grid.shape)), 0, n_rays,
+                                             workspace)
+            _launch(_mark_scan_kernel, lookups.shape[0], *(float(v) for v in origin),
+                    *(int(z) for z in zone), d_points, max_range, args, times, zones, lookups,
+                    free, hit, hits)
+            _launch(_apply_scan_kernel, n_cells, log_odds, free, hit, grid.n_rho, *update)
+        return _fetch(hits) if want_hits else None
 
 
 def decay(log_odds, factor):
@@ -802,7 +932,10 @@ def decay(log_odds, factor):
 
 def values_at(values, index):
     """``values[index]`` (a flat device array, index (u,) int64) on the host."""
-    out = cuda.device_array(max(index.shape[0], 1), dtype=values.dtype)
-    if index.shape[0]:
-        _launch(_gather_kernel, index.shape[0], values, cuda.to_device(index), out)
-    return out.copy_to_host()[:index.shape[0]]
+    if not index.shape[0]:
+        return np.empty(0, dtype=values.dtype)
+    with working() as workspace:
+        out = workspace.take("gathered", index.shape, values.dtype)
+        _launch(_gather_kernel, index.shape[0], values, _on_device(workspace, "index", index),
+                out)
+        return _fetch(out)

@@ -376,8 +376,138 @@ def compare(arrays):
     return problems
 
 
+class DeviceCalls:
+    """Count, under the simulator, what calls ask of the device.
+
+    Wraps numba-cuda's entry points: a kernel's launch, every way to
+    allocate device memory, and the copies back to the host. A wait is a
+    copy back or a synchronisation after new work was launched: copies in a
+    row with no launch between are one wait.
+    """
+
+    ALLOCATORS = ("device_array", "to_device", "device_array_like", "pinned_array",
+                  "mapped_array", "managed_array")
+
+    def __init__(self):
+        self.launches = self.allocations = self.waits = 0
+        self._since_wait = True
+
+    def __enter__(self):
+        from numba import cuda
+
+        from logsph_trace import _cuda
+
+        kernel_type = type(_cuda._fill_kernel)
+        array_type = type(cuda.device_array(1))
+        self._undo = []
+
+        def wrap(owner, name, before):
+            original = getattr(owner, name)
+
+            def counted(*args, **kwargs):
+                before()
+                return original(*args, **kwargs)
+
+            setattr(owner, name, counted)
+            self._undo.append((owner, name, original))
+
+        wrap(kernel_type, "__call__", self._launched)
+        for name in self.ALLOCATORS:
+            if hasattr(cuda, name):
+                wrap(cuda, name, self._allocated)
+        wrap(array_type, "copy_to_host", self._waited)
+        wrap(cuda, "synchronize", self._waited)
+        return self
+
+    def __exit__(self, *exc):
+        for owner, name, original in reversed(self._undo):
+            setattr(owner, name, original)
+
+    def _launched(self):
+        self.launches += 1
+        self._since_wait = False
+
+    def _allocated(self):
+        self.allocations += 1
+
+    def _waited(self):
+        if not self._since_wait:
+            self.waits += 1
+        self._since_wait = True
+
+    def counts(self):
+        return {"launches": self.launches, "allocations": self.allocations,
+                "waits": self.waits}
+
+
+# What each call may ask of the device once a first call of its size has made the
+# workspace: (launches, allocations, waits), each at most. trace_many allocates
+# the four arrays of the Traces it returns.
+BUDGETS = {
+    "integrate from the centre": (2, 0, 0),
+    "integrate off the centre": (2, 0, 0),
+    "integrate with labels": (2, 0, 1),
+    "trace_cone": (2, 0, 1),
+    "trace_cones (3 cones)": (2, 0, 1),
+    "fixation_probability": (2, 0, 1),
+    "gaze_objects": (2, 0, 1),
+    "trace_many": (7, 4, 2),
+}
+
+
+def budget_calls():
+    """{name: call} for ``BUDGETS``: each a call of the public API on a small grid."""
+    grid = lt.Grid(0.3, 10.0, 8, 16, 8)
+    rng = np.random.default_rng(3)
+    points = rng.normal(scale=3.0, size=(300, 3))
+    labels = rng.integers(1, 4, 300)
+    occupancy = lt.OccupancyGrid(grid, device="cuda")
+    occupancy.integrate(points, [0.0, 0.0, 0.0], labels=labels)
+    origins = rng.normal(scale=4.0, size=(50, 3))
+    directions = rng.normal(size=(50, 3))
+    eyes, axis = [0.21, 0.13, -0.17], [0.3, 0.1, 1.0]
+    return {
+        "integrate from the centre": lambda: occupancy.integrate(points, [0.0, 0.0, 0.0]),
+        "integrate off the centre": lambda: occupancy.integrate(points, [0.11, -0.04, 0.07]),
+        "integrate with labels": lambda: occupancy.integrate(points, [0.11, -0.04, 0.07],
+                                                             labels=labels),
+        "trace_cone": lambda: lt.trace_cone(grid, eyes, axis, 0.1, n_rays=40, device="cuda"),
+        "trace_cones (3 cones)": lambda: lt.trace_cones(grid, origins[:3] / 8, directions[:3],
+                                                        0.1, n_rays=20, device="cuda"),
+        "fixation_probability": lambda: lt.fixation_probability(occupancy, eyes, axis, 0.1,
+                                                                n_rays=40),
+        "gaze_objects": lambda: lt.gaze_objects(occupancy, eyes, axis, 0.1, n_rays=40),
+        "trace_many": lambda: lt.trace_many(grid, origins, directions, device="cuda"),
+    }
+
+
+def check_budgets():
+    """Run each call twice; return the second call's counts over budget (a list of str)."""
+    problems, made = [], 0
+    for name, call in budget_calls().items():
+        with DeviceCalls() as first:
+            call()
+        made += first.allocations
+        with DeviceCalls() as calls:
+            call()
+        print(name, calls.counts())
+        for what, got, most in zip(("launches", "allocations", "waits"),
+                                   (calls.launches, calls.allocations, calls.waits),
+                                   BUDGETS[name]):
+            if got > most:
+                problems.append(f"{name}: {got} {what}, at most {most}")
+    if not made:  # the first calls make the workspace: a count of none counts nothing
+        problems.append("no first call allocated: the allocations are not being counted")
+    return problems
+
+
 if __name__ == "__main__":
     from logsph_trace import _cuda
+
+    if sys.argv[1] == "budgets":
+        problems = check_budgets()
+        print("\n".join(problems) if problems else "within budget")
+        sys.exit(1 if problems else 0)
 
     with np.load(sys.argv[1]) as saved:
         arrays = dict(saved)

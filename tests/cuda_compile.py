@@ -90,6 +90,7 @@ def record(path):
     occupancy.integrate(points, [0.1, 0.0, 0.05], max_range=2.0)
     occupancy.decay(0.9)
     lt.fixation_probability(occupancy, [0.1, 0.2, 0.3], [0.0, 0.0, 1.0], 0.05)
+    lt.gaze_targets(occupancy, [0.1, 0.2, 0.3], [0.0, 0.0, 1.0], threshold=0.5)
     missing = _kernel_names(_cuda, simulated=True) - set(seen)
     assert not missing, f"kernels no entry point launched: {sorted(missing)}"
     with open(path, "wb") as file:

@@ -102,6 +102,15 @@ def test_simulated_gpu_in_small_batches_and_parts(tmp_path, limits):
     assert result.returncode == 0, result.stdout + result.stderr
 
 
+def test_simulated_gpu_calls_stay_within_their_launch_allocation_and_wait_budgets(tmp_path):
+    # Each call twice: the second, on the workspace the first made, launches,
+    # allocates and waits for the device at most as cuda_check.BUDGETS says
+    # (a scan two launches and no wait, a cone two launches and one wait).
+    result = _simulated(["budgets"], tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.strip().endswith("within budget"), result.stdout
+
+
 def test_gpu_traces_equal_the_cpu_on_a_real_device():
     cuda = pytest.importorskip("numba.cuda")
     if numba.config.ENABLE_CUDASIM or not cuda.is_available():
