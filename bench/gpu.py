@@ -60,28 +60,38 @@ def _box_trace_kernel(origins, directions, low, size, shape, regions, cells, t_e
 
 
 def box_many(box, origins, directions):
-    """Amanatides-Woo of unit rays on the GPU, into exact-size CSR arrays on the device."""
+    """Amanatides-Woo of unit rays on the GPU, into exact-size CSR arrays on the device.
+
+    With the exact backend's workspace, scan and compaction, so that the two
+    differ in their traversals only.
+    """
     n = origins.shape[0]
     low, size = np.asarray(box.low, dtype=np.float64), np.asarray(box.voxel_size, dtype=np.float64)
     shape = np.asarray(box.shape, dtype=np.int64)
-    d_origins, d_directions = cuda.to_device(origins), cuda.to_device(directions)
-    d_low, d_size, d_shape = cuda.to_device(low), cuda.to_device(size), cuda.to_device(shape)
-    bounds = cuda.device_array(n, dtype=np.int64)
-    _cuda._launch(_box_bound_kernel, n, d_origins, d_directions, d_low, d_size, d_shape, bounds)
-    regions = _cuda.exclusive_scan(bounds)
-    room = int(regions[n])
-    loose_cells = cuda.device_array((max(room, 1), 3), dtype=np.int32)
-    loose_enter = cuda.device_array(max(room, 1))
-    loose_exit = cuda.device_array(max(room, 1))
-    counts = cuda.device_array(n, dtype=np.int64)
-    _cuda._launch(_box_trace_kernel, n, d_origins, d_directions, d_low, d_size, d_shape, regions,
-                  loose_cells, loose_enter, loose_exit, counts)
-    offsets = _cuda.exclusive_scan(counts)
-    total = int(offsets[n])
-    cells = cuda.device_array((max(total, 1), 3), dtype=np.int32)
-    t_enter, t_exit = cuda.device_array(max(total, 1)), cuda.device_array(max(total, 1))
-    _cuda._launch(_cuda._compact_kernel, n, regions, 0, offsets, loose_cells, loose_enter,
-                  loose_exit, cells, t_enter, t_exit)
+    with _cuda.working() as workspace:
+        d_origins = _cuda._on_device(workspace, "origins", origins)
+        d_directions = _cuda._on_device(workspace, "directions", directions)
+        d_low, d_size, d_shape = (_cuda._on_device(workspace, name, value) for name, value in
+                                  (("low", low), ("size", size), ("shape", shape)))
+        bounds = workspace.take("bounds", (n,), np.int64)
+        _cuda._launch(_box_bound_kernel, n, d_origins, d_directions, d_low, d_size, d_shape,
+                      bounds)
+        regions = _cuda.exclusive_scan(bounds, workspace.take("regions", (n + 1,), np.int64),
+                                       workspace)
+        room = max(int(_cuda._fetch(regions[n:])[0]), 1)
+        loose_cells = workspace.take("loose cells", (room, 3), np.int32)
+        loose_enter = workspace.take("loose enter", (room,), np.float64)
+        loose_exit = workspace.take("loose exit", (room,), np.float64)
+        counts = workspace.take("counts", (n,), np.int64)
+        _cuda._launch(_box_trace_kernel, n, d_origins, d_directions, d_low, d_size, d_shape,
+                      regions, loose_cells, loose_enter, loose_exit, counts)
+        offsets = _cuda.exclusive_scan(counts, cuda.device_array(n + 1, dtype=np.int64),
+                                       workspace)
+        total = int(_cuda._fetch(offsets[n:])[0])
+        cells = cuda.device_array((max(total, 1), 3), dtype=np.int32)
+        t_enter, t_exit = cuda.device_array(max(total, 1)), cuda.device_array(max(total, 1))
+        _cuda._launch(_cuda._compact_kernel, n, regions, offsets, loose_cells, loose_enter,
+                      loose_exit, cells, t_enter, t_exit)
     return offsets, cells[:total], t_enter[:total], t_exit[:total]
 
 
