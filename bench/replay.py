@@ -1,12 +1,13 @@
 """Replaying a ROS 2 bag: frames per second, against the same frames without the bag.
 
-    python -m bench.replay [--frames 300] [--repeats 1]
+    python -m bench.replay [--frames 300] [--rounds 3]
 
 Writes a bag (MCAP) of a robot turning and walking past the room scene
 (``logsph_trace.ros_scene.walking_robot``): ``--frames`` 640 x 480 depth
 frames (16UC1) at 30 Hz with their label images, camera info, odometry and
 two people's gaze frames (one sample each per frame). Then times, on all
-threads, into a 64 x 360 x 180 map:
+threads, into a 64 x 360 x 180 map, in ``--rounds`` alternated rounds
+(the median and the range are reported):
 
 - ``BagReplay`` with the label topic;
 - ``BagReplay`` without it (``label_objects`` before each frame's gazes);
@@ -47,6 +48,7 @@ from logsph_trace.ros_scene import (
 )
 
 GRID = (0.3, 10.0, 64, 360, 180)
+BASELINE = "the same frames without the bag (decoded, same moves and gazes)"
 TOPICS = ("/camera/depth", "/camera/camera_info", "base_link")
 
 
@@ -141,6 +143,8 @@ def first_calls():
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=300)
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="rounds of the three replays, alternated (default 3)")
     args = parser.parse_args(argv)
     steps = args.frames - 1
     recording, scene = walking_robot(steps=steps, shape=(480, 640), rate=30.0)
@@ -155,27 +159,31 @@ def main(argv=None):
         for labels in ("/camera/labels", None):  # compiles what the timed runs use
             time_replay(small, labels)
         baseline(frames[:3], intrinsics.reshape(3, 3), scene, steps)
-        rows = {}
-        for name, labels in (("with the label topic", "/camera/labels"),
-                             ("without it (label_objects)", None)):
-            seconds, summary = time_replay(bag, labels)
-            rows[name] = {"seconds": seconds, "fps": summary.frames / seconds,
-                          "frames": summary.frames, "gazes": summary.gazes,
-                          "summary": summary.line()}
-        seconds = baseline(frames, intrinsics.reshape(3, 3), scene, steps)
-        rows["the same frames without the bag (decoded, same moves and gazes)"] = {
-            "seconds": seconds, "fps": len(frames) / seconds, "frames": len(frames),
-            "gazes": 2 * len(frames), "summary": ""}
+        runs = {}
+        for _ in range(args.rounds):  # the three alternated, so that noise falls on each
+            for name, labels in (("with the label topic", "/camera/labels"),
+                                 ("without it (label_objects)", None)):
+                seconds, summary = time_replay(bag, labels)
+                runs.setdefault(name, []).append((seconds, summary.frames, summary.gazes))
+            seconds = baseline(frames, intrinsics.reshape(3, 3), scene, steps)
+            runs.setdefault(BASELINE, []).append((seconds, len(frames), 2 * len(frames)))
+    rows = {}
+    for name, timings in runs.items():
+        seconds = [t[0] for t in timings]
+        fps = sorted(t[1] / t[0] for t in timings)
+        rows[name] = {"seconds": seconds, "fps": float(np.median(fps)), "fps_low": fps[0],
+                      "fps_high": fps[-1], "frames": timings[0][1], "gazes": timings[0][2]}
     labelling = label_objects_ms()
     first = first_calls()
     lines = [f"{lt.Grid(*GRID)}, {numba.get_num_threads()} threads; a bag of {args.frames} "
              f"640 x 480 depth frames (16UC1) at 30 Hz with label images, odometry and two "
              f"people's gazes ({size:.0f} MB, MCAP)", "",
-             "| replay | seconds | frames a second | frames | gazes |",
+             f"| replay | frames a second, median of {args.rounds} | lowest, highest | frames "
+             "| gazes |",
              "|---|---:|---:|---:|---:|"]
     for name, r in rows.items():
-        lines.append(f"| {name} | {r['seconds']:.2f} | {r['fps']:.1f} | {r['frames']} "
-                     f"| {r['gazes']} |")
+        lines.append(f"| {name} | {r['fps']:.1f} | {r['fps_low']:.1f}, {r['fps_high']:.1f} "
+                     f"| {r['frames']} | {r['gazes']} |")
     if labelling is not None:
         lines += ["", f"`label_objects` on the Motorcycle frame's 64 x 360 x 180 map: best "
                       f"{labelling[0]:.1f} ms, median {labelling[1]:.1f} ms (20 runs)"]
