@@ -14,7 +14,10 @@ threads, into a 64 x 360 x 180 map, in ``--rounds`` alternated rounds
 - the baseline: the same frames, already decoded, integrated with the same
   moves and camera poses, and the same gazes ranked as the replay ranks
   them (``gaze_objects`` without the objects' centroids, which events do
-  not carry), without reading the bag.
+  not carry), without reading the bag;
+- two A/Bs of the replay with the label topic: every ray's label vote
+  sorted (``vote_every_ray``, as before votes were counted in runs), and
+  each transform looked up afresh (no memo in ``TransformTree``).
 
 Also, when scikit-image is installed, the time of ``label_objects`` on the
 Motorcycle frame's map, and the first and second calls of
@@ -24,6 +27,7 @@ work: loading the cached kernels). Writes bench/results/replay.json and replay.m
 """
 
 import argparse
+import contextlib
 import json
 import subprocess
 import sys
@@ -37,7 +41,7 @@ import numpy as np
 import logsph_trace as lt
 from bench.workload import write_results
 from logsph_trace.gaze import DEFAULT_HALF_ANGLE, _fixation_options, _ranked
-from logsph_trace.ros import MAP_FROM_BASE, BagReplay
+from logsph_trace.ros import MAP_FROM_BASE, BagReplay, TransformTree
 from logsph_trace.ros_scene import (
     PEOPLE,
     base_pose,
@@ -70,6 +74,47 @@ def baseline(frames, intrinsics, scene, steps):
             _ranked(occupancy, gaze[:3, 3], gaze[:3, 2], DEFAULT_HALF_ANGLE, None, None, {},
                     _fixation_options(), centroids=False)
     return time.perf_counter() - start
+
+
+def vote_every_ray(occupancy, hits, labels, n_rho):
+    """``OccupancyGrid._vote`` without runs: every ray's vote sorted (two lexsorts), the A/B."""
+    hit = hits >= 0
+    cells, votes = hits[hit], labels[hit]
+    if not cells.size:
+        return
+    if n_rho:  # column-major, as the walk gives them
+        column, shell = np.divmod(cells, n_rho)
+        cells = shell * (occupancy.grid.n_theta * occupancy.grid.n_phi) + column
+    order = np.lexsort((votes, cells))
+    cells, votes = cells[order], votes[order]
+    new = np.ones(cells.shape[0], dtype=bool)
+    new[1:] = (cells[1:] != cells[:-1]) | (votes[1:] != votes[:-1])
+    starts = np.flatnonzero(new)
+    counts = np.diff(np.append(starts, cells.shape[0]))
+    cells, votes = cells[starts], votes[starts]
+    order = np.lexsort((votes, -counts, cells))
+    first = np.ones(order.shape[0], dtype=bool)
+    first[1:] = cells[order][1:] != cells[order][:-1]
+    winners = order[first]
+    occupancy._labels.reshape(-1)[cells[winners]] = votes[winners]
+
+
+@contextlib.contextmanager
+def replaced(owner, name, value):
+    """``owner.name`` is ``value`` in the block (an A/B's other side)."""
+    saved = getattr(owner, name)
+    setattr(owner, name, value)
+    try:
+        yield
+    finally:
+        setattr(owner, name, saved)
+
+
+# The A/Bs: the replay with the label topic, each shortcut switched off in turn.
+AB = (("A/B: with the label topic, every ray's vote sorted", lt.OccupancyGrid, "_vote",
+       vote_every_ray),
+      ("A/B: with the label topic, each transform looked up afresh", TransformTree, "_to_root",
+       TransformTree._walk_to_root))
 
 
 def decoded_frames(recording):
@@ -167,6 +212,10 @@ def main(argv=None):
                 runs.setdefault(name, []).append((seconds, summary.frames, summary.gazes))
             seconds = baseline(frames, intrinsics.reshape(3, 3), scene, steps)
             runs.setdefault(BASELINE, []).append((seconds, len(frames), 2 * len(frames)))
+            for name, owner, attribute, other in AB:
+                with replaced(owner, attribute, other):
+                    seconds, summary = time_replay(bag, "/camera/labels")
+                runs.setdefault(name, []).append((seconds, summary.frames, summary.gazes))
     rows = {}
     for name, timings in runs.items():
         seconds = [t[0] for t in timings]
