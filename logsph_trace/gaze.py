@@ -359,10 +359,13 @@ def gaze_objects(occupancy, gaze, direction=None, half_angle=DEFAULT_HALF_ANGLE,
 
 def _ranked(occupancy, origin, direction, half_angle, n_rays, names, cone, options,
             centroids=True):
-    """``gaze_objects`` on checked input; ``centroids=False`` leaves each hit's
-    ``centroid`` and ``n_cells`` None and skips the pass over every label
-    that finds them (half of a gaze's time on a 64 x 360 x 180 map, which a
-    replay, whose events do not carry them, need not pay)."""
+    """Rank the objects as ``gaze_objects`` does, on checked input.
+
+    ``centroids=False`` leaves each hit's ``centroid`` and ``n_cells`` None
+    and skips the pass over every label that finds them (half of a gaze's
+    time on a 64 x 360 x 180 map, which a replay, whose events do not carry
+    them, need not pay).
+    """
     with occupancy._lock:  # the cone and the labels in the cells as the map holds them
         cells, values, t_enter = _fixation_held(
             occupancy, origin, direction, half_angle, n_rays, cone.get("pattern", "fibonacci"),

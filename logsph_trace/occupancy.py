@@ -557,10 +557,9 @@ class OccupancyGrid(FollowsTheRobot):
         ``hits`` as ``kernels.objects.hit_runs`` takes them (column-major when
         ``n_rho`` > 0). Consecutive rays' equal votes are counted as one run
         first (a 640 x 480 frame's votes become a few tens of thousands of
-        runs), the runs sorted by cell and label, and each cell's winner
-        found in one pass (``kernels.objects.elect``). ``python -m
-        bench.replay`` A/Bs it against sorting every ray's vote, on a
-        replay with a label topic.
+        runs), then the runs are sorted by cell and label and each cell's
+        winner found in numpy. ``python -m bench.replay`` A/Bs it against
+        sorting every ray's vote, on a replay with a label topic.
         """
         n_cells = math.prod(self.grid.shape)
         cells = np.empty(hits.shape[0], dtype=np.int64)
@@ -568,13 +567,25 @@ class OccupancyGrid(FollowsTheRobot):
         counts = np.empty(hits.shape[0], dtype=np.int64)
         runs = _objects.hit_runs(hits, labels, n_rho, n_cells // self.grid.n_rho, cells, votes,
                                  counts)
+        if runs == 0:
+            return
         cells, votes, counts = cells[:runs], votes[:runs], counts[:runs]
-        span = int(votes.max()) + 1 if runs else 1
+        span = int(votes.max()) + 1
         if n_cells <= SORT_KEY_MAX // span:  # one key: three times faster
             order = np.argsort(cells * span + votes)
         else:
             order = np.lexsort((votes, cells))
-        _objects.elect(cells, votes, counts, order, self._labels.reshape(-1))
+        cells, votes, counts = cells[order], votes[order], counts[order]
+        # Each (cell, label) pair's votes, then each cell's most, the first
+        # (smallest) label among those with that many.
+        pair = np.flatnonzero(np.r_[True, (cells[1:] != cells[:-1])
+                                    | (votes[1:] != votes[:-1])])
+        cells, votes, counts = cells[pair], votes[pair], np.add.reduceat(counts, pair)
+        starts = np.flatnonzero(np.r_[True, cells[1:] != cells[:-1]])
+        most = np.maximum.reduceat(counts, starts)
+        best = np.flatnonzero(counts == np.repeat(most, np.diff(np.r_[starts, cells.shape[0]])))
+        winners = best[np.r_[True, cells[best][1:] != cells[best][:-1]]]
+        self._labels.reshape(-1)[cells[winners]] = votes[winners]
 
     @property
     def last_scan(self):

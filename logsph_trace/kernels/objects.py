@@ -116,28 +116,3 @@ def hit_runs(hits, labels, n_rho, n_columns, cells, votes, counts):
             runs += 1
     return runs
 
-
-@jit
-def elect(cells, votes, counts, order, labels):
-    """Give each cell of the runs the label with the most votes (ties: the smaller label).
-
-    ``cells``, ``votes`` and ``counts`` as ``hit_runs`` gives them;
-    ``order`` sorts the runs by cell, then label. ``labels``: the map's,
-    flat (C order).
-    """
-    n = order.shape[0]
-    r = 0
-    while r < n:
-        cell = cells[order[r]]
-        best = 0
-        winner = 0
-        while r < n and cells[order[r]] == cell:
-            label = votes[order[r]]
-            total = 0
-            while r < n and cells[order[r]] == cell and votes[order[r]] == label:
-                total += counts[order[r]]
-                r += 1
-            if total > best:  # labels ascend: a tie keeps the smaller
-                best = total
-                winner = label
-        labels[cell] = winner
