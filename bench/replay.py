@@ -15,9 +15,10 @@ threads, into a 64 x 360 x 180 map, in ``--rounds`` alternated rounds
   moves and camera poses, and the same gazes ranked as the replay ranks
   them (``gaze_objects`` without the objects' centroids, which events do
   not carry), without reading the bag;
-- two A/Bs of the replay with the label topic: every ray's label vote
+- three A/Bs: the replay with the label topic with every ray's label vote
   sorted (``vote_every_ray``, as before votes were counted in runs), and
-  each transform looked up afresh (no memo in ``TransformTree``).
+  with each transform looked up afresh (no memo in ``TransformTree``); the
+  replay without it with ``label_objects``' labels in numpy's zeros.
 
 Also, when scikit-image is installed, the time of ``label_objects`` on the
 Motorcycle frame's map, and the first and second calls of
@@ -40,6 +41,7 @@ import numpy as np
 
 import logsph_trace as lt
 from bench.workload import write_results
+from logsph_trace import objects
 from logsph_trace.gaze import DEFAULT_HALF_ANGLE, _fixation_options, _ranked
 from logsph_trace.ros import MAP_FROM_BASE, BagReplay, TransformTree
 from logsph_trace.ros_scene import (
@@ -110,11 +112,13 @@ def replaced(owner, name, value):
         setattr(owner, name, saved)
 
 
-# The A/Bs: the replay with the label topic, each shortcut switched off in turn.
-AB = (("A/B: with the label topic, every ray's vote sorted", lt.OccupancyGrid, "_vote",
-       vote_every_ray),
-      ("A/B: with the label topic, each transform looked up afresh", TransformTree, "_to_root",
-       TransformTree._walk_to_root))
+# The A/Bs: a replay with one shortcut switched off.
+AB = (("A/B: with the label topic, every ray's vote sorted", "/camera/labels",
+       lt.OccupancyGrid, "_vote", vote_every_ray),
+      ("A/B: with the label topic, each transform looked up afresh", "/camera/labels",
+       TransformTree, "_to_root", TransformTree._walk_to_root),
+      ("A/B: without it, label_objects' labels in numpy's zeros", None, objects,
+       "_untouched_zeros", lambda shape, dtype: np.zeros(shape, dtype=dtype)))
 
 
 def decoded_frames(recording):
@@ -212,9 +216,9 @@ def main(argv=None):
                 runs.setdefault(name, []).append((seconds, summary.frames, summary.gazes))
             seconds = baseline(frames, intrinsics.reshape(3, 3), scene, steps)
             runs.setdefault(BASELINE, []).append((seconds, len(frames), 2 * len(frames)))
-            for name, owner, attribute, other in AB:
+            for name, topic, owner, attribute, other in AB:
                 with replaced(owner, attribute, other):
-                    seconds, summary = time_replay(bag, "/camera/labels")
+                    seconds, summary = time_replay(bag, topic)
                 runs.setdefault(name, []).append((seconds, summary.frames, summary.gazes))
     rows = {}
     for name, timings in runs.items():

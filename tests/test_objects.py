@@ -200,6 +200,25 @@ def test_an_occluded_object_ranks_below_its_occluder():
     assert objects.probabilities[0] > 2 * objects.probabilities[1]
 
 
+def test_found_labels_are_an_ordinary_array(tmp_path):
+    # label_objects' labels come from fresh pages of the system: the user
+    # writes, copies, pickles and saves them as any array.
+    import pickle
+
+    points, _, _ = Scene([Box("a", (-0.8, -0.2, 2.0), (-0.4, 0.2, 2.1))]).depth_points()
+    occupancy = lt.OccupancyGrid(GRID).integrate(points, (0.0, 0.0, 0.0))
+    assert lt.label_objects(occupancy, replace=True) == 1
+    labels = occupancy.labels
+    assert labels.dtype == np.int32 and labels.shape == GRID.shape and labels.flags.writeable
+    assert np.count_nonzero(labels) == len(occupancy.occupied(0.6)) > 0
+    labels[0, 0, 0] = 7
+    assert occupancy.labels[0, 0, 0] == 7
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(occupancy)).labels, labels)
+    loaded = lt.OccupancyGrid.load(occupancy.save(tmp_path / "map"))
+    np.testing.assert_array_equal(loaded.labels, labels)
+    del occupancy, labels  # the pages go back to the system with the last reference
+
+
 def test_components_name_the_object_when_no_detector_did():
     scene = Scene([Box("a", (-0.8, -0.2, 2.0), (-0.4, 0.2, 2.1)),
                    Box("b", (0.4, -0.2, 2.0), (0.8, 0.2, 2.1)),
