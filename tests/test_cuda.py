@@ -94,10 +94,14 @@ def test_simulated_gpu_in_small_batches_and_parts(tmp_path, limits):
     # 7 rays in flight; then no memory to spare (one ray in flight, a part per
     # ray): every loop of the batch runs many times, and the parts are joined
     # on the device.
+    # With no memory to spare, a batch of cones is also taken a cone at a time.
     path = tmp_path / "cases.npz"
     all_cases = cases(n_random=20, n_singular=1)
+    cones = cone_cases()
     np.savez(path, **cpu_traces({key: all_cases[key] for key in ("log random", "log centre",
-                                                                  "paper random")}))
+                                                                  "paper random")}),
+             **cpu_cones({key: cones[key] for key in ("log cones named",
+                                                      "partial cones random")}))
     result = _simulated([str(path), *limits], tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
 
