@@ -104,9 +104,9 @@ def _trace_kernel(origins, directions, t_max, grid, start, stop, times, zones, l
                   cells, t_enter, t_exit, ends, counts):
     """Trace rays ``start + k``, ``start + k + threads``, ... below ``stop`` (thread k).
 
-    Each goes into its region (``regions[row] - regions[start]`` on), its count into ``counts``.
-
-    ``ends[row + 1]`` gets where its segments end (``trace_span``'s offsets).
+    Each goes into its region (``regions[row] - regions[start]`` on), its
+    count into ``counts``, and where its segments end into ``ends[row + 1]``
+    (``trace_span``'s offsets).
     ``False`` is ``exact.TRACE``: a literal is fine here, where this kernel is
     the only one that compiles ``trace_span`` for the GPU.
     """
@@ -680,6 +680,7 @@ def _cone_kernel(ray_from, ray_to, cone_from, origins, directions, t_max, ray_we
                     if (cells[back, 0] == i and cells[back, 2] == kk
                             and not (fixation and t_exit[back] <= min_distance)):
                         again = True
+                        break
                 if again:
                     continue
                 state[slot] = REACHED

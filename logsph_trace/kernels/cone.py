@@ -270,7 +270,7 @@ def _box_layout(offsets, starts, firsts, cells, n_rho, n_theta, j_shift):
 def box_bases(low_j, high_j, low_k, high_k):
     """One cone's boxes from its per-shell extents (n_rho,) (``high_j`` -1: a
     shell no ray reached): (span_k (n_rho,), base (n_rho + 1,)), as in
-    ``_box_layout``. The GPU path calls it on the host."""
+    ``_box_layout``."""
     n_rho = low_j.shape[0]
     span_k = np.zeros(n_rho, dtype=np.int64)
     base = np.zeros(n_rho + 1, dtype=np.int64)
