@@ -533,7 +533,7 @@ class BagReplay:
             self.summary.truncated = f"{type(error).__name__}: {error}"
 
     def _read_transforms(self, reader, connections):
-        """Read TF and camera info; return the camera infos as [(stamp, K)] sorted."""
+        """Read TF and camera info; return the camera infos: (their stamps, [K]), sorted."""
         infos = []
         for connection, message in self._messages(
                 reader, connections["tf"] + connections["camera_info"]):
@@ -548,7 +548,7 @@ class BagReplay:
         if not infos:
             raise ValueError(f"{self.bag}: no messages on {self.topics['camera_info']!r}")
         infos.sort(key=lambda info: info[0])
-        return infos
+        return np.array([info[0] for info in infos]), [info[1] for info in infos]
 
     def _gaze_samples(self):
         """Return a heap of (stamp, frame) for every sample of every gaze frame."""
@@ -626,8 +626,9 @@ class BagReplay:
         pose = self._arrive(stamp, camera, "depth frames")
         if pose is None:
             return
-        at = max(np.searchsorted([info[0] for info in infos], stamp, side="right") - 1, 0)
-        self.occupancy.integrate_depth(pixels, infos[at][1], pose=pose, depth_scale=scale,
+        stamps, matrices = infos
+        at = max(int(np.searchsorted(stamps, stamp, side="right")) - 1, 0)
+        self.occupancy.integrate_depth(pixels, matrices[at], pose=pose, depth_scale=scale,
                                        labels=labels)
         self.summary.invalid_pixels += self.occupancy.last_scan.invalid
         self._labelled = labels is not None
