@@ -16,6 +16,7 @@ import numpy as np
 from . import _validate as validate
 from .kernels import objects as _kernels
 from .occupancy import _check_occupancy as _check
+from .occupancy import _logit
 
 
 def label_objects(occupancy, threshold=0.6, exclude=None, min_cells=1, replace=False):
@@ -71,7 +72,7 @@ def label_objects(occupancy, threshold=0.6, exclude=None, min_cells=1, replace=F
         # Components are the same in any frame: they are found in the cells
         # as the map holds them, so a moved map is not resampled for them.
         log_odds, held = occupancy._held()
-        labels, count = _components(log_odds > float(np.log(threshold / (1.0 - threshold))),
+        labels, count = _components(log_odds > _logit(threshold),
                                     None if exclude is None else mask,
                                     None if replace else held, grid.theta_full, min_cells)
         if labels is not None:
