@@ -372,7 +372,7 @@ def _ranked(occupancy, origin, direction, half_angle, n_rays, names, cone, optio
             cone.get("weighting", "gaussian"), cone.get("sigma"), options)
         reached = values > 0
         cells, values, t_enter = cells[reached], values[reached], t_enter[reached]
-        labels = occupancy._held()[1][tuple(cells.T)].astype(np.int64)
+        labels = occupancy._held_labels()[tuple(cells.T)].astype(np.int64)
         labelled = labels > 0
         unlabelled = float(values[~labelled].sum())
         if not np.any(labelled):
@@ -414,7 +414,7 @@ def _centroids(occupancy, ids):
     grid = occupancy.grid
     sums = np.zeros((grid.n_rho, ids.shape[0], 4))
     radii = 0.5 * (grid.rho_edges[:-1] + grid.rho_edges[1:])
-    _objects.label_sums(occupancy._held()[1].reshape(-1), ids, radii,
+    _objects.label_sums(occupancy._held_labels().reshape(-1), ids, radii,
                         occupancy._column_directions(), sums)
     sums = sums.sum(axis=0)
     counts = sums[:, 0].astype(np.int64)

@@ -292,10 +292,17 @@ class FollowsTheRobot:
         return self._cuda.values_at(self._held_flat(), flat.astype(np.int64))
 
     def _held(self):
-        """Return (log_odds, labels) on the host as the map holds them (see :meth:`move`)."""
+        """Return (log_odds, labels) on the host as the map holds them (see :meth:`move`).
+
+        A GPU map's log-odds are copied: for the labels alone, :meth:`_held_labels`.
+        """
         if self._cuda is None:
             return self._checked(write=False), self._labels
         return self._log_odds.copy_to_host(), self._labels
+
+    def _held_labels(self):
+        """Return the labels as the map holds them (on the host, for a GPU map too)."""
+        return self._labels
 
     def _hold_labels(self, labels):
         """Replace the labels as the map holds them (int32, ``grid.shape``, checked)."""

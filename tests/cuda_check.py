@@ -382,14 +382,14 @@ class DeviceCalls:
     Wraps numba-cuda's entry points: a kernel's launch, every way to
     allocate device memory, and the copies back to the host. A wait is a
     copy back or a synchronisation after new work was launched: copies in a
-    row with no launch between are one wait.
+    row with no launch between are one wait, and each is one copy.
     """
 
     ALLOCATORS = ("device_array", "to_device", "device_array_like", "pinned_array",
                   "mapped_array", "managed_array")
 
     def __init__(self):
-        self.launches = self.allocations = self.waits = 0
+        self.launches = self.allocations = self.waits = self.copies = 0
         self._since_wait = True
 
     def __enter__(self):
@@ -415,7 +415,7 @@ class DeviceCalls:
         for name in self.ALLOCATORS:
             if hasattr(cuda, name):
                 wrap(cuda, name, self._allocated)
-        wrap(array_type, "copy_to_host", self._waited)
+        wrap(array_type, "copy_to_host", self._copied)
         wrap(cuda, "synchronize", self._waited)
         return self
 
@@ -430,6 +430,10 @@ class DeviceCalls:
     def _allocated(self):
         self.allocations += 1
 
+    def _copied(self):
+        self.copies += 1
+        self._waited()
+
     def _waited(self):
         if not self._since_wait:
             self.waits += 1
@@ -437,21 +441,22 @@ class DeviceCalls:
 
     def counts(self):
         return {"launches": self.launches, "allocations": self.allocations,
-                "waits": self.waits}
+                "waits": self.waits, "copies back": self.copies}
 
 
 # What each call may ask of the device once a first call of its size has made the
-# workspace: (launches, allocations, waits), each at most. trace_many allocates
-# the four arrays of the Traces it returns.
+# workspace: (launches, allocations, waits, copies back), each at most. trace_many
+# allocates the four arrays of the Traces it returns; a cone copies back a count
+# and the cells it reached.
 BUDGETS = {
-    "integrate from the centre": (2, 0, 0),
-    "integrate off the centre": (2, 0, 0),
-    "integrate with labels": (2, 0, 1),
-    "trace_cone": (2, 0, 1),
-    "trace_cones (3 cones)": (2, 0, 1),
-    "fixation_probability": (2, 0, 1),
-    "gaze_objects": (2, 0, 1),
-    "trace_many": (7, 4, 2),
+    "integrate from the centre": (2, 0, 0, 0),
+    "integrate off the centre": (2, 0, 0, 0),
+    "integrate with labels": (2, 0, 1, 1),
+    "trace_cone": (2, 0, 1, 2),
+    "trace_cones (3 cones)": (2, 0, 1, 2),
+    "fixation_probability": (2, 0, 1, 2),
+    "gaze_objects": (2, 0, 1, 2),
+    "trace_many": (7, 4, 2, 2),
 }
 
 
@@ -491,9 +496,9 @@ def check_budgets():
         with DeviceCalls() as calls:
             call()
         print(name, calls.counts())
-        for what, got, most in zip(("launches", "allocations", "waits"),
-                                   (calls.launches, calls.allocations, calls.waits),
-                                   BUDGETS[name]):
+        for what, got, most in zip(("launches", "allocations", "waits", "copies back"),
+                                   (calls.launches, calls.allocations, calls.waits,
+                                    calls.copies), BUDGETS[name]):
             if got > most:
                 problems.append(f"{name}: {got} {what}, at most {most}")
     if not made:  # the first calls make the workspace: a count of none counts nothing
