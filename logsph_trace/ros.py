@@ -23,7 +23,7 @@ import numpy as np
 
 from . import _validate as validate
 from . import gaze as _gaze
-from .grid import Grid
+from .grid import ROS_TO_GRID, Grid
 from .objects import label_objects
 from .occupancy import OccupancyGrid
 
@@ -44,7 +44,7 @@ TF_TOPICS = ("/tf", "/tf_static")
 # map's +z and up its +y (``from_ros``), so the map's azimuth turns about the
 # robot's vertical axis.
 MAP_FROM_BASE = np.eye(4)
-MAP_FROM_BASE[:3, :3] = [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]
+MAP_FROM_BASE[:3, :3] = ROS_TO_GRID
 
 
 @dataclass(frozen=True)

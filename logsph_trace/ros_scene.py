@@ -18,13 +18,14 @@ import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from .grid import ROS_TO_GRID
 from .scene import room_scene
 
 TYPES = get_typestore(Stores.ROS2_HUMBLE)
 MSG = TYPES.types
 # A scene point p (the library's frame: y up, z forward at the start) is
 # SCENE_FROM_ODOM @ p_odom.
-SCENE_FROM_ODOM = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+SCENE_FROM_ODOM = ROS_TO_GRID
 # The optical frame in the base frame: its x right, y down, z forward.
 BASE_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 MOUNT = np.array([0.08, 0.0, 0.0])  # the camera 8 cm ahead of the base's origin
