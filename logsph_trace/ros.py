@@ -260,47 +260,51 @@ class TransformTree:
 class McapScan:
     """The messages of an MCAP file read record by record, without its index.
 
-    For a file cut short, which rosbags' reader refuses: it reads the
-    schemas, channels and messages (in chunks, uncompressed, zstd or lz4) in
-    the order written, and raises ``EOFError`` where the file ends inside a
-    record. It offers what :class:`BagReplay` uses of rosbags' ``AnyReader``.
+    For a file cut short, which rosbags' reader refuses: the ``mcap``
+    library's stream reader gives its schemas, channels and messages (in
+    chunks or not, compressed or not) in the order written, and an
+    ``EOFError`` is raised where the file ends inside a record. It offers
+    what :class:`BagReplay` uses of rosbags' ``AnyReader``.
     """
 
-    MAGIC = b"\x89MCAP0\r\n"
-
     def __init__(self, path):
+        from mcap.records import Channel, Message, Schema
         from rosbags.typesys import Stores, get_typestore
 
         self.path = Path(path)
         self.typestore = get_typestore(Stores.LATEST)
         schemas, channels, counts = {}, {}, Counter()
         try:
-            for op, record in self._records():
-                if op == 0x03:
-                    schema_id, name = _u16(record, 0), _string(record, 2)[0]
-                    schemas[schema_id] = name
-                elif op == 0x04:
-                    topic, at = _string(record, 4)
-                    channels[_u16(record, 0)] = (topic, schemas.get(_u16(record, 2), ""))
-                elif op == 0x05:
-                    counts[_u16(record, 0)] += 1
+            for record in self._records():
+                if isinstance(record, Schema):
+                    schemas[record.id] = record.name
+                elif isinstance(record, Channel):
+                    channels[record.id] = (record.topic, schemas.get(record.schema_id, ""))
+                elif isinstance(record, Message):
+                    counts[record.channel_id] += 1
         except EOFError:
             pass  # counted up to the cut; messages() says where it is
         self.connections = [_ScannedChannel(channel, topic, msgtype, counts[channel])
                             for channel, (topic, msgtype) in channels.items()]
 
     def _records(self):
+        from mcap.exceptions import McapError
+        from mcap.stream_reader import StreamReader
+
         with self.path.open("rb") as stream:
-            if stream.read(8) != self.MAGIC:
-                raise EOFError(f"{self.path} is not an MCAP file")
-            yield from _mcap_records(stream)
+            try:
+                yield from StreamReader(stream).records
+            except McapError as error:
+                raise EOFError(f"the file ends inside a record ({error})") from None
 
     def messages(self, connections=()):
         """Yield (connection, log time, raw message) of ``connections``, in file order."""
+        from mcap.records import Message
+
         wanted = {connection.id: connection for connection in connections}
-        for op, record in self._records():
-            if op == 0x05 and _u16(record, 0) in wanted:
-                yield wanted[_u16(record, 0)], int.from_bytes(record[6:14], "little"), record[22:]
+        for record in self._records():
+            if isinstance(record, Message) and record.channel_id in wanted:
+                yield wanted[record.channel_id], record.log_time, record.data
 
     def deserialize(self, raw, msgtype):
         """Decode a CDR message of type ``msgtype``."""
@@ -316,56 +320,6 @@ class _ScannedChannel:
     topic: str
     msgtype: str
     msgcount: int
-
-
-def _u16(data, at):
-    return int.from_bytes(data[at:at + 2], "little")
-
-
-def _string(data, at):
-    """Return (the string at ``at``, the offset after it): a uint32 length, then UTF-8."""
-    length = int.from_bytes(data[at:at + 4], "little")
-    return bytes(data[at + 4:at + 4 + length]).decode("utf-8"), at + 4 + length
-
-
-def _mcap_records(stream):
-    """Yield (opcode, content) of each record, chunks opened; EOFError where one is cut."""
-    from io import BytesIO
-
-    while True:
-        head = stream.read(9)
-        if not head or head == McapScan.MAGIC[:len(head)]:
-            return  # the end, or the closing magic after the footer
-        length = int.from_bytes(head[1:], "little")
-        content = stream.read(length)
-        if len(head) < 9 or len(content) < length:
-            raise EOFError("the file ends inside a record")
-        if head[0] == 0x06:  # a chunk: its records, maybe compressed
-            compression, at = _string(content, 28)
-            size = int.from_bytes(content[at:at + 8], "little")
-            data = content[at + 8:at + 8 + size]
-            if compression == "zstd":
-                data = _zstd().decompress(data)
-            elif compression == "lz4":
-                import lz4.frame
-
-                data = lz4.frame.decompress(data)
-            elif compression:
-                raise EOFError(f"a chunk compressed with {compression!r}")
-            yield from _mcap_records(BytesIO(data))
-        elif head[0] == 0x02:
-            return  # the footer
-        else:
-            yield head[0], content
-
-
-def _zstd():
-    """Return the zstd module rosbags reads with (the standard library's from Python 3.14)."""
-    try:
-        from compression import zstd
-    except ImportError:
-        from backports import zstd
-    return zstd
 
 
 def _seconds(stamp):

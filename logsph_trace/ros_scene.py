@@ -210,22 +210,28 @@ def as_recorded(bag):
 
     rosbags' writer puts the schemas and channels after the messages, in the
     summary; the recorder writes them before the first message that needs
-    them, so a file cut short still says what its messages are. Here: the
-    header, the schemas, the channels, then every message as a record of
-    its own, then the footer.
+    them, so a file cut short still says what its messages are. Here (with
+    the ``mcap`` library): the header, the schemas, the channels, then every
+    message as a record of its own, unchunked, then the summary.
     """
-    from .ros import McapScan, _mcap_records
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
 
     path = next(bag.glob("*.mcap"))
     with path.open("rb") as stream:
-        stream.read(8)
-        records = list(_mcap_records(stream))
-    order = {0x01: 0, 0x03: 1, 0x04: 2, 0x05: 3}
-    kept = sorted((order[op], index, op, content) for index, (op, content) in enumerate(records)
-                  if op in order)
+        reader = make_reader(stream)
+        summary = reader.get_summary()
+        messages = [message for _, _, message in reader.iter_messages(log_time_order=False)]
     with path.open("wb") as out:
-        out.write(McapScan.MAGIC)
-        for _, _, op, content in kept:
-            out.write(bytes([op]) + len(content).to_bytes(8, "little") + bytes(content))
-        out.write(bytes([0x02]) + (20).to_bytes(8, "little") + bytes(20) + McapScan.MAGIC)
+        writer = Writer(out, use_chunking=False)
+        writer.start(profile="ros2", library="logsph_trace.ros_scene")
+        schema_ids = {schema.id: writer.register_schema(schema.name, schema.encoding, schema.data)
+                      for schema in summary.schemas.values()}
+        channel_ids = {channel.id: writer.register_channel(
+            channel.topic, channel.message_encoding, schema_ids[channel.schema_id],
+            channel.metadata) for channel in summary.channels.values()}
+        for message in messages:
+            writer.add_message(channel_ids[message.channel_id], message.log_time, message.data,
+                               message.publish_time, message.sequence)
+        writer.finish()
     return path
