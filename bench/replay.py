@@ -184,8 +184,11 @@ def first_calls():
         import skimage  # noqa: F401  (the Motorcycle frame)
     except ImportError:
         return None
-    done = subprocess.run([sys.executable, "-c", FIRST_CALLS], capture_output=True, text=True,
-                          check=True, cwd=Path(__file__).resolve().parent.parent)
+    # Twice: the first process compiles and caches what the replays above did
+    # not use (the cone of a gaze from the map's centre); the second is timed.
+    for _ in range(2):
+        done = subprocess.run([sys.executable, "-c", FIRST_CALLS], capture_output=True,
+                              text=True, check=True, cwd=Path(__file__).resolve().parent.parent)
     return json.loads(done.stdout)
 
 
